@@ -1,0 +1,31 @@
+"""taptr: TAPTRv2 point tracking in pure PyTorch.
+
+Heavy modules (torch, the model) are imported on first use of a name, not at import.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+__version__ = "0.1.0"
+
+_EXPORTS = {
+    "build_model": "taptr.model.build",
+    "load_checkpoint": "taptr.checkpoint",
+    "save_checkpoint": "taptr.checkpoint",
+    "official_forward": "taptr.official",
+    "ModelConfig": "taptr.config",
+    "BackboneConfig": "taptr.config",
+    "get_config": "taptr.config",
+    "PRESETS": "taptr.config",
+}
+
+__all__ = ["__version__", *sorted(_EXPORTS)]
+
+
+def __getattr__(name: str) -> Any:
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'taptr' has no attribute {name!r}")
+    return getattr(importlib.import_module(module), name)

@@ -1,0 +1,1 @@
+"""The ``taptr`` command line."""

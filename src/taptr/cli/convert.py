@@ -1,0 +1,30 @@
+"""``taptr convert SRC DST``: write any checkpoint taptr can load in taptr's own format."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    """Registers the subcommand."""
+    parser = subparsers.add_parser(
+        "convert",
+        help="convert an official TAPTR checkpoint (or a taptr one) to taptr's format",
+        description="Reads SRC safely (weights_only), converts official key names strictly, "
+        "and writes DST atomically as {'format': 'taptr', 'version': 1, 'config', 'model'}.",
+    )
+    parser.add_argument("src", help="official release (e.g. taptrv2.pth) or a taptr checkpoint")
+    parser.add_argument("dst", help="output file")
+    parser.add_argument("--half", action="store_true", help="store weights as float16")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Converts and reports what was written."""
+    from taptr.checkpoint import load_checkpoint, save_checkpoint
+
+    model = load_checkpoint(args.src)
+    path = save_checkpoint(model, args.dst, half=args.half)
+    params = sum(p.numel() for p in model.parameters())
+    print(f"wrote {path}: {len(model.state_dict())} tensors, {params:,} parameters")
+    return 0

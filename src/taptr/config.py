@@ -1,0 +1,180 @@
+"""Model hyperparameters as frozen dataclasses, with named presets.
+
+The builder (`taptr.model.build.build_model`) is the only reader of these objects; the
+modules themselves take plain typed arguments. `taptrv2` is the paper's model exactly as
+the authors' released code builds it (40,040,803 parameters); `tiny` keeps the same
+architecture with small widths and a light backbone so that tests run in seconds.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+BackboneKind = Literal["resnet50", "convnet"]
+CrossAttentionKind = Literal["key_aware", "standard"]
+
+RESNET50_CHANNELS = (256, 512, 1024, 2048)
+
+
+@dataclass(frozen=True)
+class BackboneConfig:
+    """Feature extractor returning four maps at strides 4, 8, 16 and 32.
+
+    Attributes:
+        kind: ``"resnet50"`` (torchvision ResNet-50 with frozen batch norm, the paper) or
+            ``"convnet"`` (a small stack of strided convolutions with group norm, for tests
+            and CPU-sized models).
+        channels: output channels of the four levels. Fixed to (256, 512, 1024, 2048) for
+            ``resnet50``; free for ``convnet``.
+    """
+
+    kind: BackboneKind = "resnet50"
+    channels: tuple[int, int, int, int] = RESNET50_CHANNELS
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("resnet50", "convnet"):
+            raise ValueError(f"unknown backbone kind {self.kind!r}; use 'resnet50' or 'convnet'")
+        if len(self.channels) != 4:
+            raise ValueError(f"backbone needs 4 level widths, got {self.channels}")
+        if self.kind == "resnet50" and tuple(self.channels) != RESNET50_CHANNELS:
+            raise ValueError(f"resnet50 has fixed widths {RESNET50_CHANNELS}, got {self.channels}")
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Hyperparameters of the TAPTRv2 model (defaults are the paper's).
+
+    Attributes:
+        backbone: the feature extractor.
+        d_model: channels C of every transformer token.
+        num_heads: attention heads M (deformable and multi-head attention).
+        ffn_dim: hidden width of the encoder and decoder feed-forward blocks.
+        encoder_layers: deformable encoder layers over each frame.
+        decoder_layers: decoder layers per window (the paper's depth ablation uses 2-6).
+        encoder_points: sampling points P per head and level in the encoder.
+        decoder_points: sampling points P per head and level in the decoder cross-attention.
+        sine_temperature: temperature of both sine position encodings (the official code
+            uses 10, not the usual 10000).
+        cross_attention: ``"key_aware"`` (the paper: weights from query·sampled-key dot
+            products) or ``"standard"`` (learned attention weights, Table 3 ablation).
+        position_update: the Attention-based Position Update (APU) inside cross-attention,
+            with per-layer re-embedding of the updated position and the update-aware fusion
+            of features fed to the heads. Off = Table 3 ablation.
+        disentangler: the MLP that turns cross-attention logits into position-update
+            weights. Off = the update reuses the content attention weights (averaged over
+            heads), Table 3 ablation.
+        window_size: frames per sliding window.
+        window_stride: frames between window starts.
+        long_video_frames: at inference, videos longer than this copy the content to future
+            frames only after every ⌊T / long_video_frames⌋-th window (official eval rule).
+        window_dropout: dropout on the between-window content update (training only).
+        input_size: (height, width) the predictor resizes videos to before the model.
+    """
+
+    backbone: BackboneConfig = field(default_factory=BackboneConfig)
+    d_model: int = 256
+    num_heads: int = 8
+    ffn_dim: int = 2048
+    encoder_layers: int = 2
+    decoder_layers: int = 5
+    encoder_points: int = 4
+    decoder_points: int = 4
+    sine_temperature: float = 10.0
+    cross_attention: CrossAttentionKind = "key_aware"
+    position_update: bool = True
+    disentangler: bool = True
+    window_size: int = 8
+    window_stride: int = 4
+    long_video_frames: int = 24
+    window_dropout: float = 0.6
+    input_size: tuple[int, int] = (512, 512)
+
+    def __post_init__(self) -> None:
+        if self.d_model % self.num_heads:
+            raise ValueError(f"d_model {self.d_model} is not divisible by {self.num_heads} heads")
+        if self.d_model % 4:
+            raise ValueError(
+                "d_model must be divisible by 4 (sine embeddings of 2-d and 4-d points)"
+            )
+        if self.cross_attention not in ("key_aware", "standard"):
+            raise ValueError(f"unknown cross_attention {self.cross_attention!r}")
+        if self.disentangler and not self.position_update:
+            raise ValueError("disentangler=True needs position_update=True")
+        if not 1 <= self.window_stride <= self.window_size:
+            raise ValueError("need 1 <= window_stride <= window_size")
+        if self.decoder_layers < 1 or self.encoder_layers < 0:
+            raise ValueError("need at least one decoder layer and a non-negative encoder depth")
+
+    @property
+    def num_levels(self) -> int:
+        """Feature levels L: the backbone's four stages (no extra stride-64 level)."""
+        return len(self.backbone.channels)
+
+    def replace(self, **changes: Any) -> ModelConfig:
+        """Returns a copy with some fields changed (``backbone`` may be given as a dict)."""
+        if isinstance(changes.get("backbone"), dict):
+            changes["backbone"] = BackboneConfig(**_tuples(changes["backbone"]))
+        return dataclasses.replace(self, **changes)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain-data form (lists, numbers, strings), safe for ``torch.save`` and JSON."""
+        return _lists(dataclasses.asdict(self))
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> ModelConfig:
+        """Inverse of `to_dict`; unknown keys are an error naming them."""
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ValueError(f"unknown model config keys: {', '.join(unknown)}")
+        values = _tuples(dict(data))
+        if "backbone" in values:
+            values["backbone"] = BackboneConfig(**_tuples(dict(values["backbone"])))
+        return cls(**values)
+
+
+def _lists(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {k: _lists(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_lists(v) for v in value]
+    return value
+
+
+def _tuples(data: dict[str, Any]) -> dict[str, Any]:
+    return {k: tuple(v) if isinstance(v, list) else v for k, v in data.items()}
+
+
+def taptrv2() -> ModelConfig:
+    """The paper's TAPTRv2 (ResNet-50, 2 encoder and 5 decoder layers, C = 256)."""
+    return ModelConfig()
+
+
+def tiny() -> ModelConfig:
+    """Same architecture with small widths and a light backbone, for fast tests."""
+    return ModelConfig(
+        backbone=BackboneConfig(kind="convnet", channels=(16, 24, 32, 48)),
+        d_model=32,
+        num_heads=4,
+        ffn_dim=64,
+        encoder_points=2,
+        decoder_points=2,
+        input_size=(64, 64),
+    )
+
+
+PRESETS = {"taptrv2": taptrv2, "tiny": tiny}
+
+
+def get_config(name: str) -> ModelConfig:
+    """Returns the preset called ``name``.
+
+    Raises:
+        KeyError: with the list of known presets.
+    """
+    try:
+        return PRESETS[name]()
+    except KeyError:
+        raise KeyError(f"unknown preset {name!r}; known presets: {', '.join(PRESETS)}") from None

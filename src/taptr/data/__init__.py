@@ -1,0 +1,1 @@
+"""Datasets: readers of TAP-Vid and Kubric files, synthetic videos, augmentation, sampling."""

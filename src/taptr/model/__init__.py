@@ -1,0 +1,17 @@
+"""The TAPTRv2 network: modules, the window driver and the builder."""
+
+from taptr.model.build import build_model
+from taptr.model.taptr import TAPTR, FrameFeatures, normalize_frames
+from taptr.model.tracker import QuerySet, TrackerState, TrackOutput, run_windows, window_ranges
+
+__all__ = [
+    "TAPTR",
+    "FrameFeatures",
+    "QuerySet",
+    "TrackOutput",
+    "TrackerState",
+    "build_model",
+    "normalize_frames",
+    "run_windows",
+    "window_ranges",
+]

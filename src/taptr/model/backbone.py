@@ -1,0 +1,126 @@
+"""Per-frame feature extractors (four levels at strides 4, 8, 16, 32) and input projections.
+
+The paper's backbone is torchvision's ResNet-50 with frozen batch norm, so parameter names
+match both the official checkpoint (``backbone.0.body.*``) and torchvision's ImageNet
+weights. `ConvNet` is a light stand-in with group norm for tests and CPU-sized models.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+from torch import Tensor, nn
+from torchvision.models import resnet50
+from torchvision.ops import FrozenBatchNorm2d
+
+
+class ResNet50Body(nn.Module):
+    """ResNet-50 trunk without its classifier, returning the outputs of layer1..layer4.
+
+    Shape:
+        (N, 3, H, W) → [(N, 256, H/4, W/4), (N, 512, H/8, W/8), (N, 1024, H/16, W/16),
+        (N, 2048, H/32, W/32)].
+    """
+
+    channels = (256, 512, 1024, 2048)
+
+    def __init__(self) -> None:
+        super().__init__()
+        trunk = resnet50(weights=None, norm_layer=FrozenBatchNorm2d)
+        self.conv1, self.bn1, self.relu, self.maxpool = (
+            trunk.conv1,
+            trunk.bn1,
+            trunk.relu,
+            trunk.maxpool,
+        )
+        self.layer1, self.layer2, self.layer3, self.layer4 = (
+            trunk.layer1,
+            trunk.layer2,
+            trunk.layer3,
+            trunk.layer4,
+        )
+
+    def forward(self, images: Tensor) -> list[Tensor]:
+        """Returns the four stage outputs."""
+        x = self.maxpool(self.relu(self.bn1(self.conv1(images))))
+        levels = []
+        for stage in (self.layer1, self.layer2, self.layer3, self.layer4):
+            x = stage(x)
+            levels.append(x)
+        return levels
+
+
+def _conv_block(in_channels: int, out_channels: int, stride: int) -> nn.Sequential:
+    return nn.Sequential(
+        nn.Conv2d(in_channels, out_channels, 3, stride=stride, padding=1, bias=False),
+        nn.GroupNorm(math.gcd(8, out_channels), out_channels),
+        nn.ReLU(inplace=True),
+    )
+
+
+class ConvNet(nn.Module):
+    """A light four-level CNN (two 3×3 convolutions per stage, group norm).
+
+    Shape:
+        (N, 3, H, W) → four maps of ``channels[l]`` channels at strides 4, 8, 16, 32.
+    """
+
+    def __init__(self, channels: tuple[int, int, int, int]) -> None:
+        super().__init__()
+        self.channels = tuple(channels)
+        c0 = channels[0]
+        stages = [nn.Sequential(_conv_block(3, c0, 2), _conv_block(c0, c0, 2))]
+        for c_in, c_out in itertools.pairwise(channels):
+            stages.append(nn.Sequential(_conv_block(c_in, c_out, 2), _conv_block(c_out, c_out, 1)))
+        self.stages = nn.ModuleList(stages)
+
+    def forward(self, images: Tensor) -> list[Tensor]:
+        """Returns the four stage outputs."""
+        levels = []
+        x = images
+        for stage in self.stages:
+            x = stage(x)
+            levels.append(x)
+        return levels
+
+
+class Backbone(nn.Module):
+    """Wraps a trunk so that every kind exposes ``body`` and ``channels``.
+
+    Shape:
+        (N, 3, H, W) ImageNet-normalised frames → list of L maps (N, C_l, H_l, W_l).
+    """
+
+    def __init__(self, body: ResNet50Body | ConvNet) -> None:
+        super().__init__()
+        self.body = body
+        self.channels: tuple[int, ...] = tuple(body.channels)
+
+    def forward(self, images: Tensor) -> list[Tensor]:
+        """Returns the multi-scale maps of each image."""
+        return self.body(images)
+
+
+class InputProjections(nn.Module):
+    """Per-level 1×1 convolution to d_model followed by GroupNorm(32).
+
+    Shape:
+        list of (N, C_l, H_l, W_l) → list of (N, C, H_l, W_l).
+    """
+
+    def __init__(self, in_channels: tuple[int, ...], d_model: int) -> None:
+        super().__init__()
+        self.levels = nn.ModuleList(
+            nn.Sequential(
+                nn.Conv2d(c, d_model, kernel_size=1), nn.GroupNorm(math.gcd(32, d_model), d_model)
+            )
+            for c in in_channels
+        )
+        for level in self.levels:
+            nn.init.xavier_uniform_(level[0].weight, gain=1)
+            nn.init.zeros_(level[0].bias)
+
+    def forward(self, maps: list[Tensor]) -> list[Tensor]:
+        """Projects every level."""
+        return [project(x) for project, x in zip(self.levels, maps, strict=True)]

@@ -1,0 +1,104 @@
+"""The deformable encoder: post-norm layers over each frame's multi-scale tokens.
+
+Each token attends with `DeformableAttention` around its own cell centre, the same
+normalised reference on every level. The sine position encoding plus a learned level
+embedding is added to the queries only; the decoder never sees it.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from taptr.model.attention import DeformableAttention
+from taptr.model.layers import MLP
+from taptr.model.position_encoding import feature_map_encoding
+
+
+def reference_grid(spatial_shapes: list[tuple[int, int]], device: torch.device) -> Tensor:
+    """Cell centres ((j + 0.5) / W_l, (i + 0.5) / H_l) of every level, in float32.
+
+    Returns:
+        (S, 2) as (x, y), levels concatenated, row-major inside a level.
+    """
+    grids = []
+    for height, width in spatial_shapes:
+        ys, xs = torch.meshgrid(
+            torch.linspace(0.5, height - 0.5, height, dtype=torch.float32, device=device),
+            torch.linspace(0.5, width - 0.5, width, dtype=torch.float32, device=device),
+            indexing="ij",
+        )
+        grids.append(torch.stack((xs.reshape(-1) / width, ys.reshape(-1) / height), -1))
+    return torch.cat(grids)
+
+
+class EncoderLayer(nn.Module):
+    """Deformable self-attention then FFN, each followed by a residual LayerNorm.
+
+    Shape:
+        tokens (B, S, C), position (B, S, C), reference (B, S, 2) → (B, S, C).
+    """
+
+    def __init__(self, attention: DeformableAttention, d_model: int, ffn_dim: int) -> None:
+        super().__init__()
+        self.attention = attention
+        self.norm_attention = nn.LayerNorm(d_model)
+        self.ffn = MLP(d_model, ffn_dim, d_model, num_layers=2)
+        self.norm_ffn = nn.LayerNorm(d_model)
+
+    def forward(
+        self,
+        tokens: Tensor,
+        position: Tensor,
+        reference: Tensor,
+        spatial_shapes: list[tuple[int, int]],
+    ) -> Tensor:
+        """Runs one post-norm layer."""
+        attended = self.attention(tokens + position, reference, tokens, spatial_shapes).output
+        tokens = self.norm_attention(tokens + attended)
+        return self.norm_ffn(tokens + self.ffn(tokens))
+
+
+class Encoder(nn.Module):
+    """Stack of encoder layers with the sine + level position encoding.
+
+    Shape:
+        list of L maps (B, C, H_l, W_l) → memory (B, S, C), S = Σ H_l·W_l.
+    """
+
+    def __init__(
+        self, layers: list[EncoderLayer], d_model: int, temperature: float, num_levels: int
+    ):
+        super().__init__()
+        self.layers = nn.ModuleList(layers)
+        self.level_embed = nn.Parameter(torch.empty(num_levels, d_model))
+        self.temperature = temperature
+        nn.init.normal_(self.level_embed)
+
+    def position_encoding(
+        self, spatial_shapes: list[tuple[int, int]], dtype: torch.dtype
+    ) -> Tensor:
+        """Sine encoding of every token plus its level embedding, (S, C)."""
+        channels = self.level_embed.shape[1] // 2
+        device = self.level_embed.device
+        encodings = [
+            feature_map_encoding(h, w, channels, self.temperature, device).to(dtype)
+            + self.level_embed[level]
+            for level, (h, w) in enumerate(spatial_shapes)
+        ]
+        return torch.cat(encodings)
+
+    def forward(self, maps: list[Tensor]) -> Tensor:
+        """Encodes the flattened multi-scale tokens of each image."""
+        spatial_shapes = [tuple(m.shape[-2:]) for m in maps]
+        tokens = torch.cat([m.flatten(2).transpose(1, 2) for m in maps], dim=1)  # (B, S, C)
+        if not self.layers:
+            return tokens
+        position = self.position_encoding(spatial_shapes, tokens.dtype)  # (S, C)
+        reference = reference_grid(spatial_shapes, tokens.device).to(tokens.dtype)  # (S, 2)
+        batch = tokens.shape[0]
+        position = position.unsqueeze(0).expand(batch, -1, -1)
+        reference = reference.unsqueeze(0).expand(batch, -1, -1)
+        for layer in self.layers:
+            tokens = layer(tokens, position, reference, spatial_shapes)
+        return tokens

@@ -1,0 +1,54 @@
+"""Frame sources for the window driver: encode each frame once, keep only what is needed."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from taptr.model.taptr import TAPTR, FrameFeatures
+
+
+class EncodedFrames:
+    """Encodes the frames of a video on demand, window by window.
+
+    A frame is encoded the first time a window asks for it and dropped as soon as a window
+    starting after it is requested, so at most one window of memory is held (windows are
+    requested in increasing order). Encoding is per frame, so the result equals encoding
+    the whole video at once.
+
+    Shape:
+        video (B, T, 3, H, W) ImageNet-normalised; ``self(first, last)`` → memory
+        (B, last − first + 1, S, C).
+    """
+
+    def __init__(self, model: TAPTR, video: Tensor) -> None:
+        self.model = model
+        self.video = video
+        self.cache: dict[int, Tensor] = {}
+        self.spatial_shapes: list[tuple[int, int]] = []
+
+    def __call__(self, first: int, last: int) -> FrameFeatures:
+        """Memory of frames first..last (inclusive)."""
+        for frame in [f for f in self.cache if f < first]:
+            del self.cache[frame]
+        missing = [f for f in range(first, last + 1) if f not in self.cache]
+        if missing:
+            encoded = self.model.encode(self.video[:, missing[0] : missing[-1] + 1])
+            self.spatial_shapes = encoded.spatial_shapes
+            for offset, frame in enumerate(range(missing[0], missing[-1] + 1)):
+                self.cache[frame] = encoded.memory[:, offset]
+        memory = torch.stack([self.cache[f] for f in range(first, last + 1)], dim=1)
+        return FrameFeatures(memory, self.spatial_shapes)
+
+
+class PrecomputedFrames:
+    """A frame source over features encoded beforehand (all frames at once)."""
+
+    def __init__(self, features: FrameFeatures) -> None:
+        self.features = features
+
+    def __call__(self, first: int, last: int) -> FrameFeatures:
+        """Memory of frames first..last (inclusive)."""
+        return FrameFeatures(
+            self.features.memory[:, first : last + 1], self.features.spatial_shapes
+        )

@@ -1,0 +1,151 @@
+"""The TAPTR module: per-frame encoding and per-window decoding, no loop over windows.
+
+`encode` turns frames into multi-scale memory; `initial_content` builds point queries;
+`decode_window` runs the decoder over one window; `update_content` computes the content
+handed to the next window. The sliding-window loop lives in `taptr.model.tracker`.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from taptr.config import ModelConfig
+from taptr.model.backbone import Backbone, InputProjections
+from taptr.model.decoder import Decoder, DecoderOutput
+from taptr.model.encoder import Encoder
+from taptr.model.layers import MLP
+from taptr.model.query_init import QueryInitializer
+
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+
+
+class FrameFeatures(NamedTuple):
+    """Encoder memory of some frames.
+
+    Attributes:
+        memory: (B, T, S, C) tokens of all levels, flattened row-major per level.
+        spatial_shapes: (H_l, W_l) of the L levels.
+    """
+
+    memory: Tensor
+    spatial_shapes: list[tuple[int, int]]
+
+
+def normalize_frames(frames: Tensor) -> Tensor:
+    """ImageNet normalisation of RGB frames in [0, 1], (..., 3, H, W)."""
+    mean = frames.new_tensor(IMAGENET_MEAN).view(3, 1, 1)
+    std = frames.new_tensor(IMAGENET_STD).view(3, 1, 1)
+    return (frames - mean) / std
+
+
+class TAPTR(nn.Module):
+    """TAPTRv2: backbone, deformable encoder, point-query initialiser, windowed decoder.
+
+    Inputs are ImageNet-normalised frames; positions are normalised by (W − 1, H − 1).
+    """
+
+    def __init__(
+        self,
+        backbone: Backbone,
+        input_projections: InputProjections,
+        encoder: Encoder,
+        query_init: QueryInitializer,
+        decoder: Decoder,
+        window_updater: MLP,
+        *,
+        window_size: int,
+        window_stride: int,
+        long_video_frames: int,
+        window_dropout: float,
+        config: ModelConfig | None = None,
+    ) -> None:
+        super().__init__()
+        self.backbone = backbone
+        self.input_projections = input_projections
+        self.encoder = encoder
+        self.query_init = query_init
+        self.decoder = decoder
+        self.window_updater = window_updater
+        self.window_size = window_size
+        self.window_stride = window_stride
+        self.long_video_frames = long_video_frames
+        self.window_dropout = window_dropout
+        self.config = config
+
+    @property
+    def num_layers(self) -> int:
+        """Decoder depth."""
+        return len(self.decoder.layers)
+
+    def encode(self, frames: Tensor, chunk_size: int | None = None) -> FrameFeatures:
+        """Backbone, input projections and encoder on every frame independently.
+
+        Args:
+            frames: (B, T, 3, H, W) ImageNet-normalised frames.
+            chunk_size: frames per backbone call (memory only; the result is the same).
+
+        Returns:
+            `FrameFeatures` with memory (B, T, S, C).
+        """
+        batch, num_frames = frames.shape[:2]
+        flat = frames.flatten(0, 1)  # (B·T, 3, H, W)
+        step = chunk_size or flat.shape[0]
+        chunks, spatial_shapes = [], []
+        for start in range(0, flat.shape[0], step):
+            maps = self.input_projections(self.backbone(flat[start : start + step]))
+            spatial_shapes = [(m.shape[-2], m.shape[-1]) for m in maps]
+            chunks.append(self.encoder(maps))  # (chunk, S, C)
+        memory = torch.cat(chunks).unflatten(0, (batch, num_frames))  # (B, T, S, C)
+        return FrameFeatures(memory, spatial_shapes)
+
+    def initial_content(
+        self, memory: Tensor, spatial_shapes: list[tuple[int, int]], positions: Tensor
+    ) -> Tensor:
+        """Point-query content from one frame's memory, (B, S, C) and (B, N, 2) → (B, N, C)."""
+        return self.query_init(memory, spatial_shapes, positions)
+
+    def decode_window(
+        self,
+        memory: Tensor,
+        spatial_shapes: list[tuple[int, int]],
+        content: Tensor,
+        positions: Tensor,
+        tracking: Tensor,
+        update: Tensor,
+    ) -> DecoderOutput:
+        """Runs the decoder over one window.
+
+        Args:
+            memory: (B, W_t, S, C) encoder memory of the window's frames.
+            spatial_shapes: (H_l, W_l) per level.
+            content: (B, W_t, N, C) content at window entry.
+            positions: (B, W_t, N, 4) position logits at window entry.
+            tracking: (B, W_t, N) bool, entries at or after each point's start frame.
+            update: (B, W_t, N) bool, tracking entries after the start frame.
+        """
+        return self.decoder(
+            content, positions, memory.flatten(0, 1), spatial_shapes, tracking, update
+        )
+
+    def update_content(
+        self, initial: Tensor, content: Tensor, features: Tensor, update: Tensor
+    ) -> Tensor:
+        """Content handed to the next window: entry content plus a masked learned update.
+
+        Args:
+            initial: (B, W_t, N, C) each point's initial content.
+            content: (B, W_t, N, C) content at window entry.
+            features: (B, W_t, N, C) what the last layer's heads read.
+            update: (B, W_t, N) bool.
+
+        Returns:
+            (B, W_t, N, C).
+        """
+        delta = self.window_updater(torch.cat((initial, content, features), dim=-1))
+        delta = delta * update.unsqueeze(-1).to(delta.dtype)
+        return content + F.dropout(delta, self.window_dropout, self.training)

@@ -1,0 +1,57 @@
+"""Shared fixtures: tiny models, seeded generators, the fabricated official checkpoint."""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+from pathlib import Path
+
+import pytest
+import torch
+
+from tests.helpers import FIXTURES
+
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    torch.set_num_threads(1)  # two workers on two cores: one thread each
+
+
+@pytest.fixture
+def generator() -> torch.Generator:
+    """A seeded CPU generator."""
+    return torch.Generator().manual_seed(0)
+
+
+@pytest.fixture
+def tiny_model():
+    """A freshly built tiny model in eval mode, seeded."""
+    from taptr import build_model
+
+    torch.manual_seed(0)
+    return build_model("tiny").eval()
+
+
+def _make_weights_module():
+    spec = importlib.util.spec_from_file_location("make_weights", FIXTURES / "make_weights.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="session")
+def official_state_dict() -> dict[str, torch.Tensor]:
+    """The seed-1 official-layout weights of the golden fixtures (``module.`` keys)."""
+    make_weights = _make_weights_module()
+    key_list = make_weights.read_key_list(FIXTURES / "official-state-dict.txt")
+    state_dict, _ = make_weights.make_state_dict(key_list, seed=1)
+    assert make_weights.fingerprint(state_dict) == (
+        "3e475c2cad6f199fecbb3458d98eb67acc110c1b53ae1c02c6f3a2e88fe67d72"
+    )
+    return {"module." + k: torch.from_numpy(v) for k, v in state_dict.items()}
+
+
+@pytest.fixture(scope="session")
+def official_checkpoint(tmp_path_factory, official_state_dict) -> Path:
+    """The seed-1 weights written as the authors' release is laid out."""
+    path = tmp_path_factory.mktemp("official") / "taptrv2_seed1.pth"
+    torch.save({"ema_model": official_state_dict}, path)
+    return path
