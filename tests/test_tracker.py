@@ -5,7 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from taptr.model.tracker import Trajectory, content_padding_gap, window_ranges
+from taptr.model.tracker import content_padding_gap, window_ranges
+from taptr.model.trajectory import Trajectory
 
 
 @pytest.mark.parametrize(

@@ -19,6 +19,9 @@ _EXPORTS = {
     "BackboneConfig": "taptr.config",
     "get_config": "taptr.config",
     "PRESETS": "taptr.config",
+    "Predictor": "taptr.api.predictor",
+    "TrackingResult": "taptr.types",
+    "TrackingSample": "taptr.types",
 }
 
 __all__ = ["__version__", *sorted(_EXPORTS)]

@@ -2,10 +2,15 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 from torch import Tensor
 
 from taptr.model.taptr import TAPTR, FrameFeatures
+
+FrameLoader = Callable[[int, int], Tensor]
+"""Returns frames first..last (inclusive), (B, W_t, 3, H, W) ImageNet-normalised."""
 
 
 class EncodedFrames:
@@ -17,13 +22,15 @@ class EncodedFrames:
     the whole video at once.
 
     Shape:
-        video (B, T, 3, H, W) ImageNet-normalised; ``self(first, last)`` → memory
-        (B, last − first + 1, S, C).
+        video (B, T, 3, H, W) ImageNet-normalised, or a loader of such frames;
+        ``self(first, last)`` → memory (B, last − first + 1, S, C).
     """
 
-    def __init__(self, model: TAPTR, video: Tensor) -> None:
+    def __init__(self, model: TAPTR, video: Tensor | FrameLoader) -> None:
         self.model = model
-        self.video = video
+        self.load: FrameLoader = (
+            video if callable(video) else (lambda first, last: video[:, first : last + 1])
+        )
         self.cache: dict[int, Tensor] = {}
         self.spatial_shapes: list[tuple[int, int]] = []
 
@@ -33,7 +40,7 @@ class EncodedFrames:
             del self.cache[frame]
         missing = [f for f in range(first, last + 1) if f not in self.cache]
         if missing:
-            encoded = self.model.encode(self.video[:, missing[0] : missing[-1] + 1])
+            encoded = self.model.encode(self.load(missing[0], missing[-1]))
             self.spatial_shapes = encoded.spatial_shapes
             for offset, frame in enumerate(range(missing[0], missing[-1] + 1)):
                 self.cache[frame] = encoded.memory[:, offset]

@@ -24,6 +24,7 @@ from torch import Tensor
 
 from taptr.geometry import inverse_sigmoid
 from taptr.model.taptr import TAPTR, FrameFeatures
+from taptr.model.trajectory import Trajectory
 
 
 def window_ranges(num_frames: int, size: int, stride: int) -> list[tuple[int, int]]:
@@ -74,67 +75,6 @@ class QuerySet(NamedTuple):
     start_frames: Tensor
     positions: Tensor
     start_visible: Tensor
-
-
-class Trajectory:
-    """Per-frame values of one quantity, from frame ``first`` on, plus the shared future.
-
-    Frames ``first .. first + len(frames) - 1`` are held as separate (B, N, D) tensors;
-    every later frame holds ``future``. Writes build new tensors, so autograd sees every
-    window's contribution.
-    """
-
-    def __init__(self, future: Tensor) -> None:
-        self.first = 0
-        self.frames: list[Tensor] = []
-        self.future = future
-
-    @property
-    def end(self) -> int:
-        """One past the last held frame."""
-        return self.first + len(self.frames)
-
-    def _extend(self, last: int) -> None:
-        self.frames.extend([self.future] * (last + 1 - self.end))
-
-    def read(self, first: int, last: int) -> Tensor:
-        """Values of frames first..last, (B, W_t, N, D)."""
-        if first < self.first:
-            raise IndexError(f"frame {first} was already released (first held: {self.first})")
-        self._extend(last)
-        return torch.stack(self.frames[first - self.first : last + 1 - self.first], dim=1)
-
-    def write(self, first: int, values: Tensor, mask: Tensor) -> None:
-        """Overwrites frames first.. where ``mask`` holds.
-
-        Args:
-            first: first frame written.
-            values: (B, W_t, N, D) new values.
-            mask: (B, W_t, N) bool, where to write.
-        """
-        self._extend(first + values.shape[1] - 1)
-        for offset in range(values.shape[1]):
-            index = first + offset - self.first
-            self.frames[index] = torch.where(
-                mask[:, offset, :, None], values[:, offset], self.frames[index]
-            )
-
-    def fill(self, select: Tensor, value: Tensor) -> None:
-        """Sets every held and future frame of the selected points, (B, N) and (B, N, D)."""
-        self.frames = [torch.where(select[..., None], value, f) for f in self.frames]
-        self.future = torch.where(select[..., None], value, self.future)
-
-    def pad_from(self, frame: int) -> None:
-        """Every frame after ``frame`` takes its value (the official padding)."""
-        self.future = self.frames[frame - self.first]
-        del self.frames[frame + 1 - self.first :]
-
-    def release(self, before: int) -> list[Tensor]:
-        """Drops and returns the held frames before ``before``."""
-        count = max(0, min(before - self.first, len(self.frames)))
-        released, self.frames = self.frames[:count], self.frames[count:]
-        self.first += count
-        return released
 
 
 @dataclass
@@ -210,6 +150,41 @@ def start_state(
         visibility=[Trajectory(one_hot) for _ in range(layers)],
         updated_positions=[Trajectory(position) for _ in range(layers)] if has_update else [],
     )
+
+
+def add_points(model: TAPTR, state: TrackerState, queries: QuerySet) -> None:
+    """Appends points to a running state; they start untracked and join at their start frame.
+
+    Exact with respect to tracking them from the beginning as long as no window containing
+    their start frame has been decoded yet (untracked points influence nothing).
+    """
+    fresh = start_state(model, queries, state.num_frames, state.initial_content.dtype)
+    state.queries = QuerySet(
+        *(torch.cat(pair, dim=1) for pair in zip(state.queries, queries, strict=True))
+    )
+    state.initial_content = torch.cat((state.initial_content, fresh.initial_content), dim=1)
+    state.initialised = torch.cat((state.initialised, fresh.initialised), dim=1)
+    state.content.add_points(fresh.content.future)
+    for mine, new in zip(
+        state.positions + state.visibility + state.updated_positions,
+        fresh.positions + fresh.visibility + fresh.updated_positions,
+        strict=True,
+    ):
+        mine.add_points(new.future)
+
+
+def keep_points(state: TrackerState, keep: Tensor) -> None:
+    """Drops the points not selected by the (N,) bool mask from a running state."""
+    state.queries = QuerySet(*(q[:, keep] for q in state.queries))
+    state.initial_content = state.initial_content[:, keep]
+    state.initialised = state.initialised[:, keep]
+    for trajectory in [
+        state.content,
+        *state.positions,
+        *state.visibility,
+        *state.updated_positions,
+    ]:
+        trajectory.keep_points(keep)
 
 
 def _initialise_points(

@@ -1,0 +1,281 @@
+"""Online tracking: feed frames as they arrive, add and remove points at any time.
+
+All state lives in an explicit `StreamState` that the caller holds and passes back in.
+Frames are encoded as they arrive and dropped once no window can read them, so memory is
+bounded by the window, not the stream.
+
+A window is decoded once a frame after its last frame has arrived (so that a point added
+on the newest frame still joins it), and a frame's tracks are returned once no later
+window can change them: at most about one window (8 frames) behind the newest frame.
+
+The result equals the offline `Predictor.track` on the same frames and queries, given
+that every query is added before a window containing its query frame is decoded (always
+true for queries on the newest frame), when the stream is shorter than 48 frames or its
+length is declared in `OnlineTracker.start`. For longer undeclared streams the official
+long-video rule (content handed to future frames only after every ⌊T / 24⌋-th window) is
+unknowable in advance, and the content is handed over after every window instead.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from taptr.api.inputs import video_tensor
+from taptr.api.predictor import Predictor
+from taptr.geometry import normalized_to_pixels, pixels_to_normalized
+from taptr.model.taptr import FrameFeatures
+from taptr.model.tracker import (
+    QuerySet,
+    TrackerState,
+    add_points,
+    decode_window,
+    keep_points,
+    start_state,
+    window_ranges,
+)
+
+
+@dataclass
+class StreamState:
+    """Everything an online tracker knows about one stream.
+
+    Attributes:
+        tracker: the window driver's state (points, trajectories, next window).
+        num_frames: declared stream length, or None.
+        frame_size: (H, W) of the input frames, set by the first frames or by `start`.
+        num_seen: frames received so far.
+        emitted: frames [0, emitted) have been returned.
+        last_decoded: last frame of the last decoded window (−1 before the first).
+        encoded: encoder memory (1, S, C) of the frames still needed, by frame index.
+        spatial_shapes: (H_l, W_l) of the memory levels.
+        queries: (N, 3) float32 (t, x, y) pixels of the current points.
+        point_ids: identifier of each current point, in order.
+        next_id: identifier of the next point added.
+    """
+
+    tracker: TrackerState
+    num_frames: int | None
+    frame_size: tuple[int, int] | None
+    num_seen: int = 0
+    emitted: int = 0
+    last_decoded: int = -1
+    encoded: dict[int, Tensor] = field(default_factory=dict)
+    spatial_shapes: list[tuple[int, int]] = field(default_factory=list)
+    queries: Tensor = field(default_factory=lambda: torch.zeros(0, 3))
+    point_ids: list[int] = field(default_factory=list)
+    next_id: int = 0
+
+
+@dataclass
+class StreamUpdate:
+    """Tracks of the frames that became final.
+
+    Attributes:
+        first_frame: index of the first returned frame.
+        tracks: (F, N, 2) float32 (x, y) pixels of the input frames.
+        visibility: (F, N) bool.
+        visibility_logits: (F, N); −inf before a point's query frame.
+        point_ids: identifier of each of the N points.
+    """
+
+    first_frame: int
+    tracks: Tensor
+    visibility: Tensor
+    visibility_logits: Tensor
+    point_ids: list[int]
+
+
+class OnlineTracker:
+    """Streaming front end of a `Predictor` (one video at a time, forward in time)."""
+
+    def __init__(self, predictor: Predictor) -> None:
+        self.predictor = predictor
+        self.model = predictor.model
+
+    def start(
+        self, num_frames: int | None = None, frame_size: tuple[int, int] | None = None
+    ) -> StreamState:
+        """A new, empty stream.
+
+        Args:
+            num_frames: total length, when known (makes long streams equal to offline).
+            frame_size: (H, W) of the frames, needed to add queries before the first frame.
+        """
+        device = self.predictor.device
+        empty = QuerySet(
+            torch.zeros(1, 0, dtype=torch.long, device=device),
+            torch.zeros(1, 0, 2, device=device, dtype=self.predictor.dtype),
+            torch.zeros(1, 0, dtype=torch.bool, device=device),
+        )
+        tracker = start_state(self.model, empty, num_frames, self.predictor.dtype)
+        return StreamState(tracker, num_frames, frame_size)
+
+    def add_queries(self, state: StreamState, queries: np.ndarray | Tensor) -> list[int]:
+        """Adds points given as (N, 3) (t, x, y) pixels; returns their identifiers.
+
+        Raises:
+            ValueError: the frame size is unknown, a position lies outside the frame, or a
+                query frame is already decoded (t must exceed ``state.last_decoded``).
+        """
+        if state.frame_size is None:
+            raise ValueError(
+                "the frame size is unknown: feed a frame first or pass frame_size to start()"
+            )
+        height, width = state.frame_size
+        new = torch.as_tensor(np.asarray(queries), dtype=torch.float32).reshape(-1, 3)
+        if not bool(torch.isfinite(new).all()):
+            raise ValueError("queries contain NaN or infinite values")
+        t = new[:, 0]
+        if bool((t != t.round()).any()) or bool((t <= state.last_decoded).any()):
+            raise ValueError(
+                f"query frames must be whole frame indices after frame {state.last_decoded}"
+            )
+        if state.num_frames is not None and bool((t >= state.num_frames).any()):
+            raise ValueError(f"query frame outside the declared {state.num_frames} frames")
+        x, y = new[:, 1], new[:, 2]
+        if bool(((x < 0) | (x > width - 1) | (y < 0) | (y > height - 1)).any()):
+            raise ValueError(f"query positions outside the {width}x{height} frame")
+        device = self.predictor.device
+        add_points(
+            self.model,
+            state.tracker,
+            QuerySet(
+                t.long()[None].to(device),
+                pixels_to_normalized(new[None, :, 1:], height, width).to(
+                    device, self.predictor.dtype
+                ),
+                torch.ones(1, new.shape[0], dtype=torch.bool, device=device),
+            ),
+        )
+        ids = list(range(state.next_id, state.next_id + new.shape[0]))
+        state.next_id += new.shape[0]
+        state.point_ids += ids
+        state.queries = torch.cat((state.queries, new))
+        return ids
+
+    def remove_queries(self, state: StreamState, ids: list[int]) -> None:
+        """Stops tracking the given points (unknown identifiers are an error)."""
+        unknown = sorted(set(ids) - set(state.point_ids))
+        if unknown:
+            raise ValueError(f"unknown point ids: {unknown}")
+        keep = torch.tensor([pid not in set(ids) for pid in state.point_ids], dtype=torch.bool)
+        keep_points(state.tracker, keep.to(self.predictor.device))
+        state.queries = state.queries[keep]
+        state.point_ids = [pid for pid in state.point_ids if pid not in set(ids)]
+
+    @torch.no_grad()
+    def step(self, state: StreamState, frames: np.ndarray | Tensor) -> StreamUpdate:
+        """Feeds frames and returns the tracks of every frame that became final.
+
+        Args:
+            state: the stream (updated in place).
+            frames: uint8 numpy (F, H, W, 3) or (H, W, 3) for one frame, or a torch
+                tensor (F, 3, H, W) of uint8 or floats in [0, 1].
+        """
+        chunk = self._frames(frames)
+        size = (chunk.shape[-2], chunk.shape[-1])
+        if state.frame_size is None:
+            state.frame_size = size
+        elif size != state.frame_size:
+            raise ValueError(f"frame size changed from {state.frame_size} to {size}")
+        if state.num_frames is not None and state.num_seen + chunk.shape[0] > state.num_frames:
+            raise ValueError(f"more frames than the declared {state.num_frames}")
+        features = self.model.encode(self.predictor.prepare(chunk))
+        state.spatial_shapes = features.spatial_shapes
+        for offset in range(chunk.shape[0]):
+            state.encoded[state.num_seen + offset] = features.memory[:, offset]
+        state.num_seen += chunk.shape[0]
+        while True:
+            window = self._next_window(state)
+            if window is None or window[1] >= state.num_seen - 1:
+                break
+            self._decode(state, *window)
+        return self._emit(state, self._final_bound(state))
+
+    @torch.no_grad()
+    def finish(self, state: StreamState) -> StreamUpdate:
+        """Ends the stream: decodes the remaining windows and returns every remaining frame."""
+        if state.num_seen == 0:
+            raise ValueError("the stream has no frames")
+        if state.num_frames is not None and state.num_seen != state.num_frames:
+            raise ValueError(
+                f"the stream ended after {state.num_seen} of {state.num_frames} declared frames"
+            )
+        ranges = window_ranges(state.num_seen, self.model.window_size, self.model.window_stride)
+        for first, last in ranges[state.tracker.next_window :]:
+            self._decode(state, first, last)
+        return self._emit(state, state.num_seen)
+
+    def _frames(self, frames: np.ndarray | Tensor) -> Tensor:
+        if isinstance(frames, np.ndarray):
+            return video_tensor(frames[None] if frames.ndim == 3 else frames)[0]
+        return video_tensor(frames[None])[0]
+
+    def _next_window(self, state: StreamState) -> tuple[int, int] | None:
+        index, size, stride = (
+            state.tracker.next_window,
+            self.model.window_size,
+            self.model.window_stride,
+        )
+        if state.num_frames is None:
+            return index * stride, index * stride + size - 1
+        ranges = window_ranges(state.num_frames, size, stride)
+        return ranges[index] if index < len(ranges) else None
+
+    def _final_bound(self, state: StreamState) -> int:
+        """Frames before this index can no longer change."""
+        if state.tracker.next_window == 0:
+            return 0
+        upcoming = self._next_window(state)
+        if state.num_frames is not None:
+            return state.num_frames if upcoming is None else upcoming[0]
+        # an undeclared stream may still end with a window shifted back to [T - size, T - 1]
+        assert upcoming is not None
+        return max(0, min(upcoming[0], state.num_seen - self.model.window_size))
+
+    def _decode(self, state: StreamState, first: int, last: int) -> None:
+        def source(a: int, b: int) -> FrameFeatures:
+            memory = torch.stack([state.encoded[f] for f in range(a, b + 1)], dim=1)
+            return FrameFeatures(memory, state.spatial_shapes)
+
+        decode_window(self.model, state.tracker, first, last, source)
+        state.last_decoded = last
+
+    def _emit(self, state: StreamState, bound: int) -> StreamUpdate:
+        first = state.emitted
+        height, width = state.frame_size or (1, 1)
+        tracker = state.tracker
+        if bound > first:
+            positions = tracker.positions[-1].read(first, bound - 1)[0, ..., :2].sigmoid()
+            logits = tracker.visibility[-1].read(first, bound - 1)[0, ..., 1]
+        else:
+            positions = torch.zeros(0, len(state.point_ids), 2)
+            logits = torch.zeros(0, len(state.point_ids))
+        tracks = normalized_to_pixels(positions.float().cpu(), height, width)
+        logits = logits.float().cpu()
+        frames = torch.arange(first, max(bound, first))[:, None]
+        starts = state.queries[:, 0].long()[None]
+        logits = logits.masked_fill(frames < starts, float("-inf"))
+        at_query = frames == starts  # (F, N)
+        tracks = torch.where(at_query[..., None], state.queries[None, :, 1:], tracks)
+        logits = logits.masked_fill(at_query, float("inf"))
+        state.emitted = max(bound, first)
+        self._release(state, state.emitted)
+        visibility = logits.sigmoid() > self.predictor.visibility_threshold
+        return StreamUpdate(first, tracks, visibility, logits, list(state.point_ids))
+
+    def _release(self, state: StreamState, before: int) -> None:
+        for frame in [f for f in state.encoded if f < before]:
+            del state.encoded[frame]
+        tracker = state.tracker
+        for trajectory in [
+            tracker.content,
+            *tracker.positions,
+            *tracker.visibility,
+            *tracker.updated_positions,
+        ]:
+            trajectory.release(before)

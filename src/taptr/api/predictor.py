@@ -1,0 +1,176 @@
+"""`Predictor`: pixels and (t, x, y) queries in, tracks and visibility out.
+
+The predictor hides everything but the task: it resizes frames to the model's input size,
+encodes them window by window, runs the sliding-window driver, maps positions back to the
+input pixels per axis, returns each query exactly on its own frame, and optionally tracks
+backwards in time (a second pass over the time-reversed video).
+
+Coordinates are pixel centres at integers in both the input video and the model input;
+the model's normalised units are x / (W − 1), y / (H − 1), so (0, 0) and (W − 1, H − 1)
+map onto each other across resolutions (the official convention).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from taptr.api.inputs import grid_queries, query_tensor, video_tensor
+from taptr.geometry import normalized_to_pixels, pixels_to_normalized
+from taptr.model.frames import EncodedFrames
+from taptr.model.taptr import TAPTR, normalize_frames
+from taptr.model.tracker import QuerySet, run_windows
+from taptr.types import TrackingResult
+
+logger = logging.getLogger(__name__)
+
+VideoInput = np.ndarray | Tensor | str | os.PathLike
+
+
+class Predictor:
+    """Tracks points through videos with a TAPTR model.
+
+    Args:
+        model: the network (moved to ``device`` and put in eval mode).
+        input_size: (height, width) frames are resized to; default: the model config's.
+        visibility_threshold: a point is visible where sigmoid(visibility logit) exceeds it.
+        device: where to run; default: CUDA if available, else CPU.
+        dtype: floating type of the model and its inputs (float32; float64 for exact
+            comparisons; bfloat16 or float16 on GPUs).
+    """
+
+    def __init__(
+        self,
+        model: TAPTR,
+        *,
+        input_size: tuple[int, int] | None = None,
+        visibility_threshold: float = 0.5,
+        device: str | torch.device | None = None,
+        dtype: torch.dtype = torch.float32,
+    ) -> None:
+        if device is None:
+            device = "cuda" if torch.cuda.is_available() else "cpu"
+        self.device = torch.device(device)
+        self.dtype = dtype
+        self.model = model.to(self.device, dtype).eval()
+        config_size = model.config.input_size if model.config is not None else (512, 512)
+        self.input_size = tuple(input_size or config_size)
+        if not 0 < visibility_threshold < 1:
+            raise ValueError(f"visibility_threshold must lie in (0, 1), got {visibility_threshold}")
+        self.visibility_threshold = visibility_threshold
+
+    @classmethod
+    def from_pretrained(
+        cls, name_or_path: str | os.PathLike[str] | None = None, **kwargs: Any
+    ) -> Predictor:
+        """A predictor for a checkpoint file or a model name (None: the bundled default)."""
+        from taptr.hub import resolve_model
+
+        return cls(resolve_model(name_or_path), **kwargs)
+
+    @torch.no_grad()
+    def track(
+        self,
+        video: VideoInput,
+        queries: np.ndarray | Tensor | None = None,
+        *,
+        grid_size: int | None = None,
+        grid_query_frame: int = 0,
+        backward: bool = False,
+    ) -> TrackingResult:
+        """Tracks query points through a video.
+
+        Args:
+            video: uint8 numpy (T, H, W, 3); torch (B, T, 3, H, W) uint8 or float in [0, 1];
+                or a path to a video file or a folder of images.
+            queries: (N, 3) or (B, N, 3) as (t, x, y): frame index and pixel position
+                (pixel centres at integers).
+            grid_size: instead of queries, track a grid_size × grid_size grid of points.
+            grid_query_frame: the frame the grid is placed on.
+            backward: also track frames before each query frame (time-reversed pass).
+                Without it, frames before a point's query frame hold its query position
+                and are reported not visible (logit −inf).
+
+        Returns:
+            `TrackingResult` with tracks (B, T, N, 2) in input pixels, visibility
+            (B, T, N), visibility logits (B, T, N) and the queries (B, N, 3).
+        """
+        frames = video_tensor(_read_if_path(video))
+        batch, num_frames, _, height, width = frames.shape
+        if num_frames == 0:
+            raise ValueError("the video has no frames")
+        if (queries is None) == (grid_size is None):
+            raise ValueError("pass exactly one of queries or grid_size")
+        if grid_size is not None:
+            if not 0 <= grid_query_frame < num_frames:
+                raise ValueError(f"grid_query_frame outside [0, {num_frames})")
+            queries = grid_queries(grid_size, grid_query_frame, height, width)
+        assert queries is not None
+        query = query_tensor(queries, batch, num_frames, height, width)
+        results = [self._track_one(frames[b], query[b], backward) for b in range(batch)]
+        tracks, logits = (torch.stack(parts) for parts in zip(*results, strict=True))
+        visibility = logits.sigmoid() > self.visibility_threshold
+        return TrackingResult(tracks, visibility, logits, query)
+
+    def prepare(self, frames: Tensor) -> Tensor:
+        """Model input from frames: (F, 3, H, W) in [0, 1] → (1, F, 3, H_m, W_m) normalised.
+
+        Resizing is bilinear with antialiasing, so downscaled videos do not alias.
+        """
+        chunk = frames.to(self.device, torch.float32)
+        if tuple(chunk.shape[-2:]) != self.input_size:
+            chunk = F.interpolate(chunk, size=self.input_size, mode="bilinear", antialias=True)
+        return normalize_frames(chunk)[None].to(self.dtype)
+
+    def _track_one(self, frames: Tensor, queries: Tensor, backward: bool) -> tuple[Tensor, Tensor]:
+        """One video: frames (T, 3, H, W) in [0, 1], queries (N, 3) → (T, N, 2), (T, N)."""
+        num_frames = frames.shape[0]
+        starts = queries[:, 0].long()
+        tracks, logits = self._forward_pass(frames, queries)
+        before = torch.arange(num_frames)[:, None] < starts[None]  # (T, N)
+        if backward:
+            flipped = queries.clone()
+            flipped[:, 0] = num_frames - 1 - queries[:, 0]
+            back_tracks, back_logits = self._forward_pass(frames.flip(0), flipped)
+            tracks = torch.where(before[..., None], back_tracks.flip(0), tracks)
+            logits = torch.where(before, back_logits.flip(0), logits)
+        else:
+            logits = logits.masked_fill(before, float("-inf"))
+        # each query comes back exactly where it was given, visible
+        points = torch.arange(queries.shape[0])
+        tracks[starts, points] = queries[:, 1:]
+        logits[starts, points] = float("inf")
+        return tracks, logits
+
+    def _forward_pass(self, frames: Tensor, queries: Tensor) -> tuple[Tensor, Tensor]:
+        """Forward-in-time tracking: (T, 3, H, W), (N, 3) → tracks (T, N, 2), logits (T, N)."""
+        num_frames, _, height, width = frames.shape
+        device, dtype = self.device, self.dtype
+        query_set = QuerySet(
+            queries[None, :, 0].long().to(device),
+            pixels_to_normalized(queries[None, :, 1:], height, width).to(device, dtype),
+            torch.ones(1, queries.shape[0], dtype=torch.bool, device=device),
+        )
+
+        def load(first: int, last: int) -> Tensor:
+            return self.prepare(frames[first : last + 1])
+
+        output = run_windows(
+            self.model, query_set, num_frames, EncodedFrames(self.model, load), dtype
+        )
+        positions = normalized_to_pixels(output.positions[0].float(), height, width).cpu()
+        return positions, output.visibility_logits[0, ..., 1].float().cpu()
+
+
+def _read_if_path(video: VideoInput) -> np.ndarray | Tensor:
+    if isinstance(video, (str, os.PathLike)):
+        from taptr.viz.video_io import read_video
+
+        return read_video(video)
+    return video
