@@ -37,7 +37,7 @@ from taptr.model.taptr import TAPTR
 
 FORMAT = "taptr"
 VERSION = 1
-SAFE_GLOBALS = [argparse.Namespace]
+SAFE_GLOBALS: list[Any] = [argparse.Namespace]
 
 
 class CheckpointError(ValueError):
@@ -101,7 +101,8 @@ def _unsafe_globals(path: Path) -> list[str]:
 
 def _raw_pickle_globals(path: Path) -> list[str]:
     """Globals named by a plain pickle stream, read without executing it."""
-    found, strings = [], []
+    found: list[str] = []
+    strings: list[str] = []
     try:
         with path.open("rb") as stream:
             for opcode, arg, _ in pickletools.genops(stream):

@@ -117,9 +117,10 @@ class InputProjections(nn.Module):
             )
             for c in in_channels
         )
-        for level in self.levels:
-            nn.init.xavier_uniform_(level[0].weight, gain=1)
-            nn.init.zeros_(level[0].bias)
+        for module in self.modules():
+            if isinstance(module, nn.Conv2d) and module.bias is not None:
+                nn.init.xavier_uniform_(module.weight, gain=1)
+                nn.init.zeros_(module.bias)
 
     def forward(self, maps: list[Tensor]) -> list[Tensor]:
         """Projects every level."""

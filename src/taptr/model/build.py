@@ -80,23 +80,24 @@ def _init_transformer(encoder: Encoder, decoder: Decoder) -> None:
         for module in (decoder.content_updater, decoder.position_heads, decoder.visibility_heads)
         for p in module.parameters()
     }
-    for module in (encoder, decoder):
-        for param in module.parameters():
-            if param.dim() > 1 and id(param) not in late:
-                nn.init.xavier_uniform_(param)
-    for module in encoder.modules():
-        if isinstance(module, DeformableAttention):
-            module.reset_parameters()
-    for module in decoder.modules():
+    params = [*encoder.parameters(), *decoder.parameters()]
+    for param in params:
+        if param.dim() > 1 and id(param) not in late:
+            nn.init.xavier_uniform_(param)
+    for module in [*encoder.modules(), *decoder.modules()]:
         if isinstance(module, DeformableAttention):
             module.reset_parameters()
     nn.init.normal_(encoder.level_embed)
     prior = -math.log((1 - 0.01) / 0.01)
-    for head in decoder.visibility_heads:
-        nn.init.constant_(head.bias, prior)
-    for mlp in decoder.position_heads:
-        nn.init.zeros_(mlp.layers[-1].weight)
-        nn.init.zeros_(mlp.layers[-1].bias)
+    for head in decoder.visibility_heads.modules():
+        if isinstance(head, nn.Linear):
+            nn.init.constant_(head.bias, prior)
+    for mlp in decoder.position_heads.modules():
+        if isinstance(mlp, MLP):
+            last = mlp.layers[-1]
+            assert isinstance(last, nn.Linear)
+            nn.init.zeros_(last.weight)
+            nn.init.zeros_(last.bias)
 
 
 def build_model(config: str | ModelConfig) -> TAPTR:

@@ -90,7 +90,7 @@ class Encoder(nn.Module):
 
     def forward(self, maps: list[Tensor]) -> Tensor:
         """Encodes the flattened multi-scale tokens of each image."""
-        spatial_shapes = [tuple(m.shape[-2:]) for m in maps]
+        spatial_shapes = [(m.shape[-2], m.shape[-1]) for m in maps]
         tokens = torch.cat([m.flatten(2).transpose(1, 2) for m in maps], dim=1)  # (B, S, C)
         if not self.layers:
             return tokens
