@@ -4,7 +4,13 @@ from __future__ import annotations
 
 import torch
 
-from taptr.model.ops import key_aware_ms_deform_attn, ms_deform_attn, sample_levels
+from taptr.model.ops import (
+    gather_deform_attn,
+    gather_key_aware_attn,
+    key_aware_ms_deform_attn,
+    ms_deform_attn,
+    sample_levels,
+)
 
 
 def _bilinear_zero_padded(image: torch.Tensor, x: float, y: float) -> torch.Tensor:
@@ -95,3 +101,60 @@ def test_key_aware_weights_are_softmaxed_scaled_dot_products(generator):
     torch.testing.assert_close(logits.flatten(), expected_logits)
     expected = expected_logits.softmax(0) @ v[0, :, 0]
     torch.testing.assert_close(out.flatten(), expected)
+
+
+def _random_case(generator, batch=2, queries=5, heads=2, channels=3, points=3):
+    shapes = [(5, 7), (3, 4), (1, 2)]
+    tokens = sum(h * w for h, w in shapes)
+    values = torch.randn(batch, tokens, heads, channels, dtype=torch.float64, generator=generator)
+    # some locations outside [0, 1] exercise the zero padding
+    locations = torch.rand(
+        batch, queries, heads, 3, points, 2, dtype=torch.float64, generator=generator
+    )
+    locations = locations * 1.4 - 0.2
+    return shapes, values, locations
+
+
+def test_gather_kernel_equals_grid_sample(generator):
+    shapes, values, locations = _random_case(generator)
+    weights = torch.rand(*locations.shape[:-1], dtype=torch.float64, generator=generator)
+    weights = weights.flatten(-2).softmax(-1).view_as(weights)
+    reference = ms_deform_attn(values, shapes, locations, weights)
+    torch.testing.assert_close(gather_deform_attn(values, shapes, locations, weights), reference)
+
+    queries = torch.randn(2, 5, 2, 3, dtype=torch.float64, generator=generator)
+    keys = torch.randn_like(values)
+    ref_out, ref_logits = key_aware_ms_deform_attn(queries, keys, values, shapes, locations)
+    out, logits = gather_key_aware_attn(queries, keys, values, shapes, locations)
+    torch.testing.assert_close(out, ref_out)
+    torch.testing.assert_close(logits, ref_logits)
+
+
+def test_gather_kernels_gradcheck(generator):
+    shapes, values, locations = _random_case(generator, batch=1, queries=2, points=2)
+    values.requires_grad_(True)
+    locations = (locations * 0.6 + 0.2).requires_grad_(True)  # away from cell borders' kinks
+    weights = torch.rand(*locations.shape[:-1], dtype=torch.float64, generator=generator)
+    weights.requires_grad_(True)
+    assert torch.autograd.gradcheck(
+        lambda v, loc, w: gather_deform_attn(v, shapes, loc, w), (values, locations, weights)
+    )
+    queries = torch.randn(1, 2, 2, 3, dtype=torch.float64, generator=generator, requires_grad=True)
+    keys = torch.randn_like(values, requires_grad=True)
+    assert torch.autograd.gradcheck(
+        lambda *a: gather_key_aware_attn(a[0], a[1], a[2], shapes, a[3]),
+        (queries, keys, values, locations),
+    )
+
+
+def test_set_kernel_switches_every_attention():
+    import pytest
+
+    from taptr import build_model
+    from taptr.model.ops import set_kernel
+
+    model = set_kernel(build_model("tiny"), "grid_sample")
+    kernels = {m.kernel for m in model.modules() if hasattr(m, "kernel")}
+    assert kernels == {"grid_sample"}
+    with pytest.raises(ValueError, match="unknown kernel"):
+        set_kernel(model, "cuda")

@@ -13,7 +13,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from taptr.model.ops import key_aware_ms_deform_attn, ms_deform_attn
+from taptr.model.ops import KERNELS, KEY_AWARE_KERNELS
 
 
 class DeformableOutput(NamedTuple):
@@ -74,6 +74,7 @@ class DeformableAttention(nn.Module):
         self.attention_weights = nn.Linear(d_model, samples)
         self.value_proj = nn.Linear(d_model, d_model)
         self.output_proj = nn.Linear(d_model, d_model)
+        self.kernel = "gather"
         self.reset_parameters()
 
     def reset_parameters(self) -> None:
@@ -111,7 +112,7 @@ class DeformableAttention(nn.Module):
         logits = self.attention_weights(query).view(batch, queries, m, lv * p)
         weights = logits.softmax(-1).view(batch, queries, m, lv, p)
         locations = sampling_locations(reference, offsets, spatial_shapes)
-        output = ms_deform_attn(values, spatial_shapes, locations, weights)
+        output = KERNELS[self.kernel](values, spatial_shapes, locations, weights)
         return DeformableOutput(
             self.output_proj(output), logits.view(batch, queries, m, lv, p), offsets
         )
@@ -136,6 +137,7 @@ class KeyAwareDeformableAttention(nn.Module):
         self.key_proj = nn.Linear(d_model, d_model)
         self.query_proj = nn.Linear(d_model, d_model)
         self.output_proj = nn.Linear(d_model, d_model)
+        self.kernel = "gather"
         self.reset_parameters()
 
     def reset_parameters(self) -> None:
@@ -172,7 +174,7 @@ class KeyAwareDeformableAttention(nn.Module):
         projected = self.query_proj(query).view(batch, queries, m, -1)  # (B, Q, M, D)
         offsets = self.sampling_offsets(query).view(batch, queries, m, lv, p, 2)
         locations = sampling_locations(reference, offsets, spatial_shapes)
-        output, logits = key_aware_ms_deform_attn(
+        output, logits = KEY_AWARE_KERNELS[self.kernel](
             projected, keys, values, spatial_shapes, locations
         )
         return DeformableOutput(self.output_proj(output), logits, offsets)
