@@ -187,3 +187,16 @@ def test_shared_sample_metadata_and_lazy_read():
     assert first.shape == (480, 368, 3) and first.dtype == np.uint8
     clip = read_video(SHARED_MEDIA / "apple.mp4", stride=10, max_frames=3)
     assert clip.shape == (3, 720, 1296, 3)
+
+
+def test_write_image_round_trip(tmp_path):
+    from taptr.viz.video_io import write_image
+
+    image = np.zeros((6, 9, 3), np.uint8)
+    image[2, 3] = (255, 0, 0)
+    path = write_image(tmp_path / "frame.png", image)
+    back = read_video(tmp_path)[0]
+    assert back.shape == (6, 9, 3) and tuple(back[2, 3]) == (255, 0, 0)
+    assert path.name == "frame.png"
+    with pytest.raises(ValueError, match="can only write"):
+        write_image(tmp_path / "frame.bmp", image)

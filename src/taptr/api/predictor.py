@@ -14,18 +14,20 @@ from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+from tqdm.auto import tqdm
 
 from taptr.api.inputs import grid_queries, query_tensor, video_tensor
 from taptr.geometry import normalized_to_pixels, pixels_to_normalized
 from taptr.model.frames import EncodedFrames
 from taptr.model.taptr import TAPTR, normalize_frames
-from taptr.model.tracker import QuerySet, run_windows
+from taptr.model.tracker import QuerySet, run_windows, window_ranges
 from taptr.types import TrackingResult
 
 logger = logging.getLogger(__name__)
@@ -83,6 +85,7 @@ class Predictor:
         grid_size: int | None = None,
         grid_query_frame: int = 0,
         backward: bool = False,
+        progress: bool = False,
     ) -> TrackingResult:
         """Tracks query points through a video.
 
@@ -96,6 +99,7 @@ class Predictor:
             backward: also track frames before each query frame (time-reversed pass).
                 Without it, frames before a point's query frame hold its query position
                 and are reported not visible (logit −inf).
+            progress: show a progress bar over the windows (on stderr).
 
         Returns:
             `TrackingResult` with tracks (B, T, N, 2) in input pixels, visibility
@@ -113,7 +117,12 @@ class Predictor:
             queries = grid_queries(grid_size, grid_query_frame, height, width)
         assert queries is not None
         query = query_tensor(queries, batch, num_frames, height, width)
-        results = [self._track_one(frames[b], query[b], backward) for b in range(batch)]
+        windows = len(window_ranges(num_frames, self.model.window_size, self.model.window_stride))
+        total = batch * windows * (2 if backward else 1)
+        with tqdm(total=total, desc="tracking", unit="window", disable=not progress) as bar:
+            results = [
+                self._track_one(frames[b], query[b], backward, bar.update) for b in range(batch)
+            ]
         tracks, logits = (torch.stack(parts) for parts in zip(*results, strict=True))
         visibility = logits.sigmoid() > self.visibility_threshold
         return TrackingResult(tracks, visibility, logits, query)
@@ -128,16 +137,18 @@ class Predictor:
             chunk = F.interpolate(chunk, size=self.input_size, mode="bilinear", antialias=True)
         return normalize_frames(chunk)[None].to(self.dtype)
 
-    def _track_one(self, frames: Tensor, queries: Tensor, backward: bool) -> tuple[Tensor, Tensor]:
+    def _track_one(
+        self, frames: Tensor, queries: Tensor, backward: bool, on_window: Callable[[], object]
+    ) -> tuple[Tensor, Tensor]:
         """One video: frames (T, 3, H, W) in [0, 1], queries (N, 3) → (T, N, 2), (T, N)."""
         num_frames = frames.shape[0]
         starts = queries[:, 0].long()
-        tracks, logits = self._forward_pass(frames, queries)
+        tracks, logits = self._forward_pass(frames, queries, on_window)
         before = torch.arange(num_frames)[:, None] < starts[None]  # (T, N)
         if backward:
             flipped = queries.clone()
             flipped[:, 0] = num_frames - 1 - queries[:, 0]
-            back_tracks, back_logits = self._forward_pass(frames.flip(0), flipped)
+            back_tracks, back_logits = self._forward_pass(frames.flip(0), flipped, on_window)
             tracks = torch.where(before[..., None], back_tracks.flip(0), tracks)
             logits = torch.where(before, back_logits.flip(0), logits)
         else:
@@ -148,7 +159,9 @@ class Predictor:
         logits[starts, points] = float("inf")
         return tracks, logits
 
-    def _forward_pass(self, frames: Tensor, queries: Tensor) -> tuple[Tensor, Tensor]:
+    def _forward_pass(
+        self, frames: Tensor, queries: Tensor, on_window: Callable[[], object]
+    ) -> tuple[Tensor, Tensor]:
         """Forward-in-time tracking: (T, 3, H, W), (N, 3) → tracks (T, N, 2), logits (T, N)."""
         num_frames, _, height, width = frames.shape
         device, dtype = self.device, self.dtype
@@ -162,7 +175,7 @@ class Predictor:
             return self.prepare(frames[first : last + 1])
 
         output = run_windows(
-            self.model, query_set, num_frames, EncodedFrames(self.model, load), dtype
+            self.model, query_set, num_frames, EncodedFrames(self.model, load), dtype, on_window
         )
         positions = normalized_to_pixels(output.positions[0].float(), height, width).cpu()
         return positions, output.visibility_logits[0, ..., 1].float().cpu()

@@ -13,7 +13,7 @@ import logging
 import sys
 from collections.abc import Sequence
 
-COMMANDS = ("convert",)
+COMMANDS = ("convert", "track", "edit", "sample-video")
 
 USER_ERRORS: tuple[type[BaseException], ...] = (
     FileNotFoundError,

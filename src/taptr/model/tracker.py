@@ -282,7 +282,12 @@ def finish(state: TrackerState, num_frames: int) -> TrackOutput:
 
 
 def run_windows(
-    model: TAPTR, queries: QuerySet, num_frames: int, frames: FrameSource, dtype: torch.dtype
+    model: TAPTR,
+    queries: QuerySet,
+    num_frames: int,
+    frames: FrameSource,
+    dtype: torch.dtype,
+    on_window: Callable[[], object] | None = None,
 ) -> TrackOutput:
     """Tracks the queries through a whole video, window by window.
 
@@ -292,6 +297,7 @@ def run_windows(
         num_frames: video length T.
         frames: source of encoded frames for each window.
         dtype: floating dtype of the positions and content.
+        on_window: called after each window (progress reporting).
     """
     state = start_state(model, queries, num_frames, dtype)
     ranges = window_ranges(num_frames, model.window_size, model.window_stride)
@@ -300,4 +306,6 @@ def run_windows(
     ):
         decode_window(model, state, first, last, frames)
         state.content.release(before=following[0])  # content of earlier frames is never read again
+        if on_window is not None:
+            on_window()
     return finish(state, num_frames)

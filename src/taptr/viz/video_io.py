@@ -178,6 +178,18 @@ def write_video(path: str | os.PathLike[str], frames: Iterable[np.ndarray], fps:
     return target
 
 
+def write_image(path: str | os.PathLike[str], image: np.ndarray) -> Path:
+    """Writes one (H, W, 3) uint8 RGB image (png or jpg, by suffix), atomically."""
+    target = Path(path)
+    if target.suffix.lower() not in IMAGE_SUFFIXES:
+        raise ValueError(f"can only write {', '.join(IMAGE_SUFFIXES)} images, got {target.name}")
+    bgr = cv2.cvtColor(_check_frame(image), cv2.COLOR_RGB2BGR)
+    with atomic_path(target) as tmp:
+        if not cv2.imwrite(str(tmp), bgr):
+            raise ValueError(f"cannot write image {target}")
+    return target
+
+
 def natural_sort_key(name: str) -> list[int | str]:
     """Sort key that orders embedded numbers by value: ``f2`` before ``f10``."""
     return [int(part) if part.isdigit() else part.lower() for part in re.split(r"(\d+)", name)]
