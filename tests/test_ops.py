@@ -158,3 +158,16 @@ def test_set_kernel_switches_every_attention():
     assert kernels == {"grid_sample"}
     with pytest.raises(ValueError, match="unknown kernel"):
         set_kernel(model, "cuda")
+
+
+def test_gather_kernel_at_and_beyond_the_far_border():
+    """Locations clamped onto the last level's far border must stay inside the table."""
+    shapes = [(2, 3), (1, 2)]
+    values = torch.randn(1, 8, 1, 2, dtype=torch.float64)
+    edge = torch.tensor(
+        [[1.0, 1.0], [5.0, 5.0], [-3.0, 0.5], [1.0 + 0.5 / 3, 0.5]], dtype=torch.float64
+    )
+    locations = edge.view(1, 4, 1, 1, 1, 2).expand(1, 4, 1, 2, 1, 2).contiguous()
+    weights = torch.full((1, 4, 1, 2, 1), 0.5, dtype=torch.float64)
+    reference = ms_deform_attn(values, shapes, locations, weights)
+    torch.testing.assert_close(gather_deform_attn(values, shapes, locations, weights), reference)

@@ -2,12 +2,14 @@
 
 Bilinear sampling is a weighted sum of four table rows per location. Folding the
 attention weights into the bilinear weights turns a whole deformable-attention output into
-one ``embedding_bag`` call per head and query over the rows of the value table, which is
-the projection output viewed as (B·S·M, D): no per-level channel-first copies, no large
-intermediate of sampled values. Corners outside a map get weight zero (zero padding) and
-the same align_corners=False convention as ``grid_sample``, so results equal
-`taptr.model.ops.ms_deform_attn` up to float rounding; gradients flow to the values, the
-weights and the locations (through the bilinear weights).
+one ``embedding_bag`` call over the rows of the value table, which is the projection output
+viewed as (B·S·M, D): no per-level channel-first copies and no large intermediate of
+sampled values. Each level is padded with a zero border (one cell before, two after, so
+that a location clamped onto the far border still has both corners inside) and locations
+further out are clamped onto the border, where every corner reads zero. This is exactly
+``grid_sample``'s zero padding with align_corners=False, so results equal
+`taptr.model.ops.ms_deform_attn` up to float rounding, and gradients flow to the values,
+the weights and the locations.
 """
 
 from __future__ import annotations
@@ -16,48 +18,67 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from taptr.model.ops.ms_deform_attn import level_start_index
+
+def padded_table(values: Tensor, spatial_shapes: list[tuple[int, int]]) -> Tensor:
+    """Values with a zero border around every level, as gather rows.
+
+    Args:
+        values: (B, S, M, D), levels flattened row-major.
+        spatial_shapes: (H_l, W_l) per level.
+
+    Returns:
+        (B · Σ(H_l + 3)(W_l + 3) · M, D).
+    """
+    batch, _, heads, channels = values.shape
+    parts, start = [], 0
+    for height, width in spatial_shapes:
+        level = values[:, start : start + height * width].view(
+            batch, height, width, heads, channels
+        )
+        parts.append(F.pad(level, (0, 0, 0, 0, 1, 2, 1, 2)).flatten(1, 2))  # (B, (H+3)(W+3), M, D)
+        start += height * width
+    return torch.cat(parts, dim=1).reshape(-1, channels)
 
 
 def bilinear_corners(
-    locations: Tensor, spatial_shapes: list[tuple[int, int]], tokens: int
+    locations: Tensor, spatial_shapes: list[tuple[int, int]], scale: Tensor | None = None
 ) -> tuple[Tensor, Tensor]:
-    """Table rows and weights of the four bilinear corners of every sampling location.
+    """Rows of the padded table and weights of the four corners of every location.
 
     Args:
         locations: (B, Q, M, L, P, 2) locations (x, y) in [0, 1] of each level.
         spatial_shapes: (H_l, W_l) per level.
-        tokens: S, tokens per image in the table.
+        scale: optional (B, Q, M, L, P) factor folded into the weights.
 
     Returns:
-        rows (B, Q, M, L·P, 4) into a (B·S·M, D) table, and weights of the same shape
-        (zero for corners outside the map), corners ordered (y0 x0, y0 x1, y1 x0, y1 x1).
+        rows (B, Q, M, L·P, 4) into `padded_table`, and weights of the same shape, corners
+        ordered (y0 x0, y0 x1, y1 x0, y1 x1).
     """
     batch, queries, heads, levels, points, _ = locations.shape
     device, dtype = locations.device, locations.dtype
-    sizes = torch.tensor(spatial_shapes, device=device).view(levels, 1, 2)  # (H_l, W_l)
-    heights, widths = sizes[..., 0], sizes[..., 1]  # (L, 1)
-    starts = torch.tensor(level_start_index(spatial_shapes), device=device).view(levels, 1)
-    x = locations[..., 0] * widths.to(dtype) - 0.5  # (B, Q, M, L, P) in pixels
-    y = locations[..., 1] * heights.to(dtype) - 0.5
-    x0, y0 = x.floor(), y.floor()
-    fx, fy = x - x0, y - y0
-    x0, y0 = x0.long(), y0.long()
-    x1, y1 = x0 + 1, y0 + 1
-    # outside corners keep a valid row but weigh nothing (zero padding)
-    wx0 = (1 - fx) * ((x0 >= 0) & (x0 < widths))
-    wx1 = fx * ((x1 >= 0) & (x1 < widths))
-    wy0 = (1 - fy) * ((y0 >= 0) & (y0 < heights))
-    wy1 = fy * ((y1 >= 0) & (y1 < heights))
-    last_x, last_y = widths - 1, heights - 1
-    cx0, cx1 = x0.clamp(min=0).minimum(last_x), x1.clamp(min=0).minimum(last_x)
-    row0 = starts + y0.clamp(min=0).minimum(last_y) * widths
-    row1 = starts + y1.clamp(min=0).minimum(last_y) * widths
-    base = torch.arange(batch, device=device).view(batch, 1, 1, 1, 1) * (tokens * heads)
-    base = base + torch.arange(heads, device=device).view(1, 1, heads, 1, 1)
-    rows = torch.stack((row0 + cx0, row0 + cx1, row1 + cx0, row1 + cx1), -1) * heads
-    rows = rows + base.unsqueeze(-1)
-    weights = torch.stack((wy0 * wx0, wy0 * wx1, wy1 * wx0, wy1 * wx1), -1)
+    sizes = torch.tensor(spatial_shapes, device=device, dtype=dtype).view(levels, 1, 2).flip(-1)
+    padded = [(h + 3) * (w + 3) for h, w in spatial_shapes]
+    starts = torch.tensor([sum(padded[:i]) for i in range(levels)], device=device).view(levels, 1)
+    row_length = torch.tensor([w + 3 for _, w in spatial_shapes], device=device).view(levels, 1)
+    pixels = locations * sizes - 0.5  # (B, Q, M, L, P, 2) as (x, y) in each level's pixels
+    # beyond one cell outside, every corner is in the zero border: clamp onto it
+    pixels = torch.maximum(torch.minimum(pixels, sizes), pixels.new_tensor(-1.0))
+    corner = pixels.floor()
+    frac = pixels - corner
+    cell = (corner + 1).long()  # padded coordinates of the top-left corner
+    # table row of (image b, token s, head m) is (b·S_pad + s)·M + m
+    image_head = torch.arange(batch, device=device).view(batch, 1, 1, 1, 1) * (sum(padded) * heads)
+    image_head = image_head + torch.arange(heads, device=device).view(1, 1, heads, 1, 1)
+    top_left = image_head + (starts + cell[..., 1] * row_length + cell[..., 0]) * heads
+    steps = torch.stack(
+        (torch.zeros_like(row_length), torch.ones_like(row_length), row_length, row_length + 1), -1
+    )
+    rows = top_left.unsqueeze(-1) + steps * heads  # (B, Q, M, L, P, 4)
+    wx = torch.stack((1 - frac[..., 0], frac[..., 0]), -1)  # (B, Q, M, L, P, 2)
+    wy = torch.stack((1 - frac[..., 1], frac[..., 1]), -1)
+    if scale is not None:
+        wy = wy * scale.unsqueeze(-1)
+    weights = (wy.unsqueeze(-1) * wx.unsqueeze(-2)).flatten(-2)  # (B, Q, M, L, P, 4)
     shape = (batch, queries, heads, levels * points, 4)
     return rows.view(shape), weights.view(shape)
 
@@ -93,11 +114,11 @@ def gather_deform_attn(
     Returns:
         (B, Q, M·D).
     """
-    batch, tokens, heads, channels = values.shape
-    rows, corner_weights = bilinear_corners(locations, spatial_shapes, tokens)
-    combined = corner_weights * weights.flatten(-2).unsqueeze(-1)  # (B, Q, M, L·P, 4)
-    out = gather_sum(values.reshape(-1, channels), rows.flatten(-2), combined.flatten(-2))
-    return out.view(batch, -1, heads * channels)  # (B, Q, M·D)
+    batch, _, heads, channels = values.shape
+    rows, combined = bilinear_corners(locations, spatial_shapes, scale=weights)
+    table = padded_table(values, spatial_shapes)
+    out = gather_sum(table, rows.flatten(-2), combined.flatten(-2))  # (B, Q, M, D)
+    return out.view(batch, -1, heads * channels)
 
 
 def gather_key_aware_attn(
@@ -121,11 +142,14 @@ def gather_key_aware_attn(
     """
     batch, num_queries, heads, channels = queries.shape
     levels, points = locations.shape[3:5]
-    rows, corner_weights = bilinear_corners(locations, spatial_shapes, keys.shape[1])
-    sampled_keys = gather_sum(keys.reshape(-1, channels), rows, corner_weights)  # (B, Q, M, L·P, D)
+    rows, corner_weights = bilinear_corners(locations, spatial_shapes)
+    sampled_keys = gather_sum(
+        padded_table(keys, spatial_shapes), rows, corner_weights
+    )  # (B, Q, M, L·P, D)
     logits = torch.einsum("bqmd,bqmjd->bqmj", queries, sampled_keys) / channels**0.5
     combined = corner_weights * logits.softmax(-1).unsqueeze(-1)  # (B, Q, M, L·P, 4)
-    out = gather_sum(values.reshape(-1, channels), rows.flatten(-2), combined.flatten(-2))
+    table = padded_table(values, spatial_shapes)
+    out = gather_sum(table, rows.flatten(-2), combined.flatten(-2))
     return out.view(batch, num_queries, heads * channels), logits.view(
         batch, num_queries, heads, levels, points
     )
