@@ -8,9 +8,12 @@ top-left pixel); queries are (t, x, y). Visibility is True where the point is vi
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-from torch import Tensor
+
+if TYPE_CHECKING:  # keeps torch out of the import of the data readers and the CLI
+    from torch import Tensor
 
 
 @dataclass

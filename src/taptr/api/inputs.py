@@ -71,12 +71,13 @@ def query_tensor(
         raise ValueError(
             f"query frame t outside [0, {num_frames}) (got {int(t.min())}..{int(t.max())})"
         )
-    bad_x = bool(((x < 0) | (x > width - 1)).any())
-    bad_y = bool(((y < 0) | (y > height - 1)).any())
+    # pixel centres sit at integers, so the image area spans [-0.5, size - 0.5]
+    bad_x = bool(((x < -0.5) | (x > width - 0.5)).any())
+    bad_y = bool(((y < -0.5) | (y > height - 0.5)).any())
     if bad_x or bad_y:
         raise ValueError(
-            f"query positions outside the {width}x{height} frame: x must lie in [0, {width - 1}] "
-            f"and y in [0, {height - 1}] (pixel centres at integers)"
+            f"query positions outside the {width}x{height} frame: x must lie in "
+            f"[-0.5, {width - 0.5}] and y in [-0.5, {height - 0.5}] (pixel centres at integers)"
         )
     return q.float()
 

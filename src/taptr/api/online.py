@@ -137,7 +137,7 @@ class OnlineTracker:
         if state.num_frames is not None and bool((t >= state.num_frames).any()):
             raise ValueError(f"query frame outside the declared {state.num_frames} frames")
         x, y = new[:, 1], new[:, 2]
-        if bool(((x < 0) | (x > width - 1) | (y < 0) | (y > height - 1)).any()):
+        if bool(((x < -0.5) | (x > width - 0.5) | (y < -0.5) | (y > height - 0.5)).any()):
             raise ValueError(f"query positions outside the {width}x{height} frame")
         device = self.predictor.device
         add_points(

@@ -10,16 +10,18 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import pickle
 import sys
 from collections.abc import Sequence
 
-COMMANDS = ("convert", "track", "edit", "sample-video")
+COMMANDS = ("convert", "track", "edit", "sample-video", "eval")
 
 USER_ERRORS: tuple[type[BaseException], ...] = (
     FileNotFoundError,
     ValueError,
     KeyError,
     PermissionError,
+    pickle.UnpicklingError,
 )
 
 
