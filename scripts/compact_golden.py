@@ -67,7 +67,7 @@ def main() -> None:
         if len(sys.argv) > 1
         else Path(__file__).resolve().parents[2] / "shared/reference/golden"
     )
-    for case in ("v2_small_nonsquare", "v2_long", "loss_v2"):
+    for case in ("v2_small_nonsquare", "v2_long", "loss_v2", "v1_small"):
         data = compact(golden / f"{case}.npz")
         np.savez_compressed(OUT / f"{case}.npz", **data)
         meta = json.loads((golden / f"{case}.json").read_text())

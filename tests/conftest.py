@@ -37,16 +37,33 @@ def _make_weights_module():
     return module
 
 
+def _seed1_weights(key_list_name: str, fingerprint: str) -> dict[str, torch.Tensor]:
+    make_weights = _make_weights_module()
+    key_list = make_weights.read_key_list(FIXTURES / key_list_name)
+    state_dict, _ = make_weights.make_state_dict(key_list, seed=1)
+    assert make_weights.fingerprint(state_dict) == fingerprint
+    return {"module." + k: torch.from_numpy(v) for k, v in state_dict.items()}
+
+
 @pytest.fixture(scope="session")
 def official_state_dict() -> dict[str, torch.Tensor]:
-    """The seed-1 official-layout weights of the golden fixtures (``module.`` keys)."""
-    make_weights = _make_weights_module()
-    key_list = make_weights.read_key_list(FIXTURES / "official-state-dict.txt")
-    state_dict, _ = make_weights.make_state_dict(key_list, seed=1)
-    assert make_weights.fingerprint(state_dict) == (
-        "3e475c2cad6f199fecbb3458d98eb67acc110c1b53ae1c02c6f3a2e88fe67d72"
+    """The seed-1 official TAPTRv2 weights of the golden fixtures (``module.`` keys)."""
+    return _seed1_weights(
+        "official-state-dict.txt",
+        "3e475c2cad6f199fecbb3458d98eb67acc110c1b53ae1c02c6f3a2e88fe67d72",
     )
-    return {"module." + k: torch.from_numpy(v) for k, v in state_dict.items()}
+
+
+@pytest.fixture(scope="session")
+def official_v1_checkpoint(tmp_path_factory) -> Path:
+    """The seed-1 official TAPTR v1 weights, laid out as the authors' release."""
+    weights = _seed1_weights(
+        "official-v1-state-dict.txt",
+        "002c0715433fe8d9274a2a13fbae9617698ab8b9b8401b38211ca3dbe3f05c3c",
+    )
+    path = tmp_path_factory.mktemp("official_v1") / "taptrv1_seed1.pth"
+    torch.save({"ema_model": weights, "epoch": 0}, path)
+    return path
 
 
 @pytest.fixture(scope="session")

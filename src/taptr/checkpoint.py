@@ -24,11 +24,12 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from taptr.config import ModelConfig, taptrv2
+from taptr.config import ModelConfig, taptrv1, taptrv2
 from taptr.convert.official import (
     ConversionError,
     convert_state_dict,
     looks_official,
+    official_version,
     official_weights,
 )
 from taptr.files import atomic_path
@@ -169,7 +170,8 @@ def model_from_checkpoint(
             converted, _ = convert_state_dict(official_weights(checkpoint))
         except ConversionError as error:
             raise CheckpointError(f"{source}: {error}") from None
-        return build_model(taptrv2()), converted
+        config = taptrv1() if official_version(converted) == 1 else taptrv2()
+        return build_model(config), converted
     raise CheckpointError(
         f"{source} is neither a taptr checkpoint (no 'format': 'taptr' entry) nor an official "
         f"TAPTR release (no 'ema_model' / 'model' weights with official key names); "

@@ -65,6 +65,17 @@ class ModelConfig:
         disentangler: the MLP that turns cross-attention logits into position-update
             weights. Off = the update reuses the content attention weights (averaged over
             heads), Table 3 ablation.
+        version: decoder generation. 2: cross-attention first in each layer, the content
+            updater from layer 1 on. 1 (TAPTR): temporal attention, point attention, then
+            cross-attention in each layer, the content updater at every layer.
+        cost_volume: TAPTR v1's correlation of each point with its frame, sampled around the
+            point and fused into the content at every layer (version 1 only).
+        temporal_attention: attention across each point's frames in a window (TAPTR v1
+            Table 1 ablation when off).
+        point_attention: attention among the points of each frame (Table 1 ablation).
+        memory_efficient: TAPTR v1's memory-efficient mode: every point's initial content
+            is sampled from frame min(start, 7), which changes outputs when a point starts
+            after frame 7 (version 1 only; off reproduces the official evaluation).
         window_size: frames per sliding window.
         window_stride: frames between window starts.
         long_video_frames: at inference, videos longer than this copy the content to future
@@ -85,6 +96,11 @@ class ModelConfig:
     cross_attention: CrossAttentionKind = "key_aware"
     position_update: bool = True
     disentangler: bool = True
+    version: int = 2
+    cost_volume: bool = False
+    temporal_attention: bool = True
+    point_attention: bool = True
+    memory_efficient: bool = False
     window_size: int = 8
     window_stride: int = 4
     long_video_frames: int = 24
@@ -102,6 +118,12 @@ class ModelConfig:
             raise ValueError(f"unknown cross_attention {self.cross_attention!r}")
         if self.disentangler and not self.position_update:
             raise ValueError("disentangler=True needs position_update=True")
+        if self.version not in (1, 2):
+            raise ValueError(f"version must be 1 (TAPTR) or 2 (TAPTRv2), got {self.version}")
+        if self.version == 1 and (self.position_update or self.cross_attention != "standard"):
+            raise ValueError("version 1 uses standard cross-attention and no position update")
+        if self.version == 2 and (self.cost_volume or self.memory_efficient):
+            raise ValueError("cost_volume and memory_efficient exist in version 1 (TAPTR) only")
         if not 1 <= self.window_stride <= self.window_size:
             raise ValueError("need 1 <= window_stride <= window_size")
         if self.decoder_layers < 1 or self.encoder_layers < 0:
@@ -152,6 +174,18 @@ def taptrv2() -> ModelConfig:
     return ModelConfig()
 
 
+def taptrv1() -> ModelConfig:
+    """TAPTR (v1): 6 decoder layers, plain cross-attention last, the cost volume."""
+    return ModelConfig(
+        version=1,
+        decoder_layers=6,
+        cross_attention="standard",
+        position_update=False,
+        disentangler=False,
+        cost_volume=True,
+    )
+
+
 def tiny() -> ModelConfig:
     """Same architecture with small widths and a light backbone, for fast tests."""
     return ModelConfig(
@@ -165,7 +199,18 @@ def tiny() -> ModelConfig:
     )
 
 
-PRESETS = {"taptrv2": taptrv2, "tiny": tiny}
+def small() -> ModelConfig:
+    """A CPU-sized model (the bundled weights): light backbone, C = 64, 256×256 input."""
+    return ModelConfig(
+        backbone=BackboneConfig(kind="convnet", channels=(32, 48, 64, 96)),
+        d_model=64,
+        num_heads=4,
+        ffn_dim=256,
+        input_size=(256, 256),
+    )
+
+
+PRESETS = {"taptrv2": taptrv2, "taptrv1": taptrv1, "tiny": tiny, "small": small}
 
 
 def get_config(name: str) -> ModelConfig:

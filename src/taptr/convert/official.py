@@ -1,11 +1,12 @@
 """Converter from the authors' released checkpoints to taptr's module names.
 
-The official files (``taptrv2.pth``) are training checkpoints of a DINO-derived model: the
-weights used for inference are under ``ema_model`` with a ``module.`` prefix, the points are
-"boxes" and visibility is a "class". This module is the only place where those names
-appear. The map is explicit: every official key must match exactly one rule, the aliased
-head copies (``transformer.decoder.bbox_embed`` / ``class_embed``) are dropped after
-checking that they equal the canonical tensors, and shapes are checked by the strict load.
+The official files (``taptrv2.pth``, ``taptrv1.pth``) are training checkpoints of a
+DINO-derived model: the weights used for inference are under ``ema_model`` with a
+``module.`` prefix, the points are "boxes" and visibility is a "class". This module is the
+only place where those names appear. The map is explicit: every official key must match
+exactly one rule, the aliased head copies (``transformer.decoder.bbox_embed`` /
+``class_embed``) are dropped after checking that they equal the canonical tensors, and
+shapes are checked by the strict load.
 """
 
 from __future__ import annotations
@@ -69,6 +70,20 @@ RULES: tuple[tuple[str, str], ...] = (
         _DECODER_LAYER + r"caupdate_weight_regressor\.0\.(weight|bias)",
         r"decoder.layers.\1.position_update.disentangler.layers.2.\2",
     ),
+    (_DECODER_LAYER + r"corr_fuser\.0\.(weight|bias)", r"decoder.layers.\1.corr_fuser.layers.0.\2"),
+    (_DECODER_LAYER + r"corr_fuser\.2\.(weight|bias)", r"decoder.layers.\1.corr_fuser.layers.1.\2"),
+    (
+        r"transformer\.decoder\.corr_query_proj\.0\.(weight|bias)",
+        r"decoder.cost_volume.query_proj.layers.0.\1",
+    ),
+    (
+        r"transformer\.decoder\.corr_query_proj\.2\.(weight|bias)",
+        r"decoder.cost_volume.query_proj.layers.1.\1",
+    ),
+    (
+        r"transformer\.decoder\.corr_block\.fmap_mappers\.(\d)\.(weight|bias)",
+        r"decoder.cost_volume.fmap_mappers.\1.\2",
+    ),
     (
         r"transformer\.decoder\.ref_point_head\.layers\.(\d)\.(weight|bias)",
         r"decoder.position_embed.layers.\1.\2",
@@ -108,7 +123,7 @@ ALIAS_PREFIXES = {
 
 
 class ConversionError(ValueError):
-    """The state dict is not an official TAPTRv2 checkpoint, with every reason listed."""
+    """The state dict is not an official TAPTR checkpoint, with every reason listed."""
 
 
 def official_weights(checkpoint: Mapping[str, object]) -> Mapping[str, Tensor]:
@@ -172,19 +187,24 @@ def convert_state_dict(state_dict: Mapping[str, Tensor]) -> tuple[dict[str, Tens
             converted[new_key] = value
     problems = []
     if unknown:
-        problems.append(f"{len(unknown)} keys of no known TAPTRv2 module: {_preview(unknown)}")
+        problems.append(f"{len(unknown)} keys of no known TAPTR module: {_preview(unknown)}")
     if bad_alias:
         problems.append(
             f"{len(bad_alias)} aliased head keys differ from their originals: {_preview(bad_alias)}"
         )
     if problems:
-        raise ConversionError("not an official TAPTRv2 checkpoint: " + "; ".join(problems))
+        raise ConversionError("not an official TAPTR checkpoint: " + "; ".join(problems))
     return converted, dropped
 
 
 def _preview(keys: list[str], limit: int = 8) -> str:
     shown = ", ".join(keys[:limit])
     return shown + (f", ... ({len(keys) - limit} more)" if len(keys) > limit else "")
+
+
+def official_version(converted: Mapping[str, Tensor]) -> int:
+    """1 for TAPTR (it has the cost volume), 2 for TAPTRv2, from converted key names."""
+    return 1 if any(key.startswith("decoder.cost_volume.") for key in converted) else 2
 
 
 def looks_official(checkpoint: Mapping[str, object]) -> bool:

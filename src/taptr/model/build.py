@@ -20,12 +20,16 @@ from taptr.model.attention import (
     MultiheadAttention,
 )
 from taptr.model.backbone import Backbone, ConvNet, InputProjections, ResNet50Body
+from taptr.model.cost_volume import CostVolume
 from taptr.model.decoder import Decoder, DecoderLayer
 from taptr.model.encoder import Encoder, EncoderLayer
 from taptr.model.layers import MLP
 from taptr.model.position_update import PositionUpdate
 from taptr.model.query_init import QueryInitializer
 from taptr.model.taptr import TAPTR
+
+COST_VOLUME_RADIUS = 3
+"""TAPTR v1 samples 7×7 correlation windows."""
 
 
 def _build_backbone(config: ModelConfig) -> Backbone:
@@ -56,14 +60,17 @@ def _build_decoder_layer(config: ModelConfig) -> DecoderLayer:
     else:
         cross = DeformableAttention(c, m, lv, p)
     update = PositionUpdate(m * lv * p, c, config.disentangler) if config.position_update else None
+    corr_values = lv * (2 * COST_VOLUME_RADIUS + 1) ** 2
     return DecoderLayer(
         cross,
         update,
-        MultiheadAttention(c, m),
-        MultiheadAttention(c, m),
+        MultiheadAttention(c, m) if config.temporal_attention else None,
+        MultiheadAttention(c, m) if config.point_attention else None,
         c,
         config.ffn_dim,
         config.sine_temperature,
+        cross_attention_first=config.version == 2,
+        corr_fuser=MLP(c + corr_values, c, c, 2) if config.cost_volume else None,
     )
 
 
@@ -71,15 +78,30 @@ def _build_decoder(config: ModelConfig) -> Decoder:
     c = config.d_model
     fuser = MLP(2 * c, c, c, 3) if config.position_update else None
     layers = [_build_decoder_layer(config) for _ in range(config.decoder_layers)]
-    return Decoder(layers, c, config.sine_temperature, fuser)
+    cost_volume = (
+        CostVolume(c, config.num_levels, COST_VOLUME_RADIUS) if config.cost_volume else None
+    )
+    return Decoder(
+        layers,
+        c,
+        config.sine_temperature,
+        fuser,
+        cost_volume=cost_volume,
+        update_first_layer=config.version == 1,
+    )
 
 
 def _init_transformer(encoder: Encoder, decoder: Decoder) -> None:
-    late = {
-        id(p)
-        for module in (decoder.content_updater, decoder.position_heads, decoder.visibility_heads)
-        for p in module.parameters()
-    }
+    # modules the official code creates after the transformer's reset keep PyTorch defaults
+    late_modules: list[nn.Module] = [
+        decoder.content_updater,
+        decoder.position_heads,
+        decoder.visibility_heads,
+    ]
+    if decoder.cost_volume is not None:
+        late_modules.append(decoder.cost_volume)
+    late_modules += [layer.corr_fuser for layer in decoder.layers if layer.corr_fuser is not None]
+    late = {id(p) for module in late_modules for p in module.parameters()}
     params = [*encoder.parameters(), *decoder.parameters()]
     for param in params:
         if param.dim() > 1 and id(param) not in late:
@@ -126,5 +148,6 @@ def build_model(config: str | ModelConfig) -> TAPTR:
         window_stride=config.window_stride,
         long_video_frames=config.long_video_frames,
         window_dropout=config.window_dropout,
+        memory_efficient=config.memory_efficient,
         config=config,
     )

@@ -1,10 +1,14 @@
 """The point decoder: refines every point query on every frame of one window.
 
-One layer, in the official order: deformable cross-attention to the frame's memory with the
-attention-based position update (APU) → re-embedding of the moved position → temporal
-self-attention across the window's frames of each point → self-attention among the points
-of each frame → FFN, each post-normed. After every layer the decoder fuses the APU
-displacement into the features that the per-layer position and visibility heads read.
+One TAPTRv2 layer, in the official order: deformable cross-attention to the frame's memory
+with the attention-based position update (APU) → re-embedding of the moved position →
+temporal self-attention across the window's frames of each point → self-attention among
+the points of each frame → FFN, each post-normed. After every layer the decoder fuses the
+APU displacement into the features that the per-layer position and visibility heads read.
+
+TAPTR (v1) layers fuse the cost volume into the content first, then run temporal
+attention, point attention and plain cross-attention, and apply the content updater from
+the first layer on; everything else is shared.
 
 Tracked and untracked entries (a point before its start frame) never attend to each other,
 so untracked entries run through the network without affecting anything that is kept.
@@ -23,6 +27,7 @@ from taptr.model.attention import (
     KeyAwareDeformableAttention,
     MultiheadAttention,
 )
+from taptr.model.cost_volume import CostVolume
 from taptr.model.layers import MLP
 from taptr.model.position_encoding import point_embedding
 from taptr.model.position_update import PositionUpdate
@@ -59,6 +64,29 @@ class DecoderOutput(NamedTuple):
     features: Tensor
 
 
+class AttentionMasks(NamedTuple):
+    """Which entries may attend to each other (True = allowed).
+
+    Attributes:
+        temporal: (B·N, 1, W_t, W_t) frames of one point.
+        spatial: (B·W_t, 1, N, N) points of one frame.
+    """
+
+    temporal: Tensor
+    spatial: Tensor
+
+
+def attention_masks(tracking: Tensor) -> AttentionMasks:
+    """Tracked and untracked entries are mutually invisible; (B, W_t, N) → masks."""
+    batch, frames, points = tracking.shape
+    per_point = tracking.transpose(1, 2).reshape(batch * points, frames)  # (B·N, W_t)
+    per_frame = tracking.reshape(batch * frames, points)  # (B·W_t, N)
+    return AttentionMasks(
+        (per_point[:, :, None] == per_point[:, None, :]).unsqueeze(1),
+        (per_frame[:, :, None] == per_frame[:, None, :]).unsqueeze(1),
+    )
+
+
 class DecoderLayer(nn.Module):
     """Cross-attention (+ position update), temporal attention, point attention, FFN.
 
@@ -71,24 +99,43 @@ class DecoderLayer(nn.Module):
         self,
         cross_attention: KeyAwareDeformableAttention | DeformableAttention,
         position_update: PositionUpdate | None,
-        temporal_attention: MultiheadAttention,
-        point_attention: MultiheadAttention,
+        temporal_attention: MultiheadAttention | None,
+        point_attention: MultiheadAttention | None,
         d_model: int,
         ffn_dim: int,
         temperature: float,
+        *,
+        cross_attention_first: bool = True,
+        corr_fuser: MLP | None = None,
     ) -> None:
+        """Creates the layer.
+
+        Args:
+            cross_attention: deformable attention to the memory.
+            position_update: the APU, or None.
+            temporal_attention: attention across a point's frames, or None (ablation).
+            point_attention: attention among a frame's points, or None (ablation).
+            d_model: channels C.
+            ffn_dim: FFN hidden width.
+            temperature: sine temperature of the position re-embedding.
+            cross_attention_first: TAPTRv2 order; False gives TAPTR v1's (temporal, points,
+                cross).
+            corr_fuser: v1's MLP that replaces the content by a fusion with the cost volume.
+        """
         super().__init__()
         self.cross_attention = cross_attention
         self.norm_cross = nn.LayerNorm(d_model)
         self.position_update = position_update
         self.position_embed = MLP(2 * d_model, d_model, d_model, 2) if position_update else None
         self.temporal_attention = temporal_attention
-        self.norm_temporal = nn.LayerNorm(d_model)
+        self.norm_temporal = nn.LayerNorm(d_model) if temporal_attention else None
         self.point_attention = point_attention
-        self.norm_points = nn.LayerNorm(d_model)
+        self.norm_points = nn.LayerNorm(d_model) if point_attention else None
         self.ffn = MLP(d_model, ffn_dim, d_model, 2)
         self.norm_ffn = nn.LayerNorm(d_model)
+        self.corr_fuser = corr_fuser
         self.temperature = temperature
+        self.cross_attention_first = cross_attention_first
 
     def forward(
         self,
@@ -97,9 +144,9 @@ class DecoderLayer(nn.Module):
         reference: Tensor,
         memory: Tensor,
         spatial_shapes: list[tuple[int, int]],
-        temporal_allowed: Tensor,
-        spatial_allowed: Tensor,
+        masks: AttentionMasks,
         update: Tensor,
+        correlation: Tensor | None = None,
     ) -> LayerOutput:
         """Runs one layer.
 
@@ -109,12 +156,39 @@ class DecoderLayer(nn.Module):
             reference: (B, W_t, N, 4) positions (x, y, w, h) in [0, 1].
             memory: (B·W_t, S, C) encoder memory of the window's frames.
             spatial_shapes: (H_l, W_l) per level.
-            temporal_allowed: (B·N, 1, W_t, W_t) which frames of a point see each other.
-            spatial_allowed: (B·W_t, 1, N, N) which points of a frame see each other.
+            masks: which entries may attend to each other.
             update: (B, W_t, N) entries whose position may change (tracked, after start).
+            correlation: (B, W_t, N, K) cost-volume samples at ``reference`` (v1 only).
         """
-        batch, frames, points, channels = content.shape
-        flat = content.reshape(batch * frames, points, channels)  # (B·W_t, N, C)
+        x = content
+        if self.corr_fuser is not None and correlation is not None:
+            x = self.corr_fuser(torch.cat((x, correlation), dim=-1))  # replaces the content
+        displacement = None
+        if self.cross_attention_first:
+            x, reference, displacement, query_pos = self._cross(
+                x, query_pos, reference, memory, spatial_shapes, update
+            )
+        x = self._temporal(x, query_pos, masks.temporal)
+        x = self._points(x, query_pos, masks.spatial)
+        if not self.cross_attention_first:
+            x, reference, displacement, query_pos = self._cross(
+                x, query_pos, reference, memory, spatial_shapes, update
+            )
+        x = self.norm_ffn(x + self.ffn(x))
+        return LayerOutput(x, reference, displacement)
+
+    def _cross(
+        self,
+        x: Tensor,
+        query_pos: Tensor,
+        reference: Tensor,
+        memory: Tensor,
+        spatial_shapes: list[tuple[int, int]],
+        update: Tensor,
+    ) -> tuple[Tensor, Tensor, Tensor | None, Tensor]:
+        """Cross-attention, then the position update and re-embedding when present."""
+        batch, frames, points, channels = x.shape
+        flat = x.reshape(batch * frames, points, channels)  # (B·W_t, N, C)
         attended = self.cross_attention(
             flat + query_pos.reshape(batch * frames, points, channels),
             reference[..., :2].reshape(batch * frames, points, 2),
@@ -122,31 +196,33 @@ class DecoderLayer(nn.Module):
             spatial_shapes,
         )
         x = self.norm_cross(flat + attended.output).view(batch, frames, points, channels)
+        if self.position_update is None or self.position_embed is None:
+            return x, reference, None, query_pos
+        delta = self.position_update(attended.logits, attended.offsets, spatial_shapes)
+        moved = clamp_to_unit(reference[..., :2] + delta.view(batch, frames, points, 2))
+        displacement = update.unsqueeze(-1).to(moved.dtype) * (moved - reference[..., :2])
+        moved = torch.where(update.unsqueeze(-1), moved, reference[..., :2])
+        reference = torch.cat((moved, reference[..., 2:]), dim=-1)
+        query_pos = self.position_embed(point_embedding(reference, channels // 2, self.temperature))
+        return x, reference, displacement, query_pos
 
-        displacement = None
-        if self.position_update is not None and self.position_embed is not None:
-            delta = self.position_update(attended.logits, attended.offsets, spatial_shapes)
-            moved = clamp_to_unit(reference[..., :2] + delta.view(batch, frames, points, 2))
-            mask = update.unsqueeze(-1).to(moved.dtype)
-            displacement = mask * (moved - reference[..., :2])
-            reference = torch.cat(
-                (torch.where(update.unsqueeze(-1), moved, reference[..., :2]), reference[..., 2:]),
-                dim=-1,
-            )
-            query_pos = self.position_embed(
-                point_embedding(reference, channels // 2, self.temperature)
-            )
-
+    def _temporal(self, x: Tensor, query_pos: Tensor, allowed: Tensor) -> Tensor:
+        if self.temporal_attention is None or self.norm_temporal is None:
+            return x
+        batch, frames, points, channels = x.shape
         q = (x + query_pos).transpose(1, 2).reshape(batch * points, frames, channels)
         v = x.transpose(1, 2).reshape(batch * points, frames, channels)  # (B·N, W_t, C)
-        temporal = self.temporal_attention(q, q, v, temporal_allowed)
-        x = self.norm_temporal(v + temporal).view(batch, points, frames, channels).transpose(1, 2)
+        x = self.norm_temporal(v + self.temporal_attention(q, q, v, allowed))
+        return x.view(batch, points, frames, channels).transpose(1, 2)
 
+    def _points(self, x: Tensor, query_pos: Tensor, allowed: Tensor) -> Tensor:
+        if self.point_attention is None or self.norm_points is None:
+            return x
+        batch, frames, points, channels = x.shape
         q = (x + query_pos).reshape(batch * frames, points, channels)
         v = x.reshape(batch * frames, points, channels)  # (B·W_t, N, C)
-        x = self.norm_points(v + self.point_attention(q, q, v, spatial_allowed))
-        x = self.norm_ffn(x + self.ffn(x)).view(batch, frames, points, channels)
-        return LayerOutput(x, reference, displacement)
+        x = self.norm_points(v + self.point_attention(q, q, v, allowed))
+        return x.view(batch, frames, points, channels)
 
 
 class Decoder(nn.Module):
@@ -163,15 +239,30 @@ class Decoder(nn.Module):
         d_model: int,
         temperature: float,
         update_fuser: MLP | None,
+        *,
+        cost_volume: CostVolume | None = None,
+        update_first_layer: bool = False,
     ) -> None:
+        """Creates the decoder.
+
+        Args:
+            layers: the decoder layers.
+            d_model: channels C.
+            temperature: sine temperature of the query position embedding.
+            update_fuser: TAPTRv2's fusion of the APU displacement into the head features.
+            cost_volume: TAPTR v1's correlation module, or None.
+            update_first_layer: apply the content updater before the first layer too (v1).
+        """
         super().__init__()
         self.layers = nn.ModuleList(layers)
         self.position_embed = MLP(2 * d_model, d_model, d_model, 2)
         self.content_updater = MLP(2 * d_model, d_model, d_model, 2)
         self.update_fuser = update_fuser
+        self.cost_volume = cost_volume
         self.position_heads = nn.ModuleList(MLP(d_model, d_model, 4, 3) for _ in layers)
         self.visibility_heads = nn.ModuleList(nn.Linear(d_model, 3) for _ in layers)
         self.temperature = temperature
+        self.update_first_layer = update_first_layer
 
     @property
     def has_position_update(self) -> bool:
@@ -205,42 +296,46 @@ class Decoder(nn.Module):
             update: (B, W_t, N) tracking entries after the start frame.
         """
         batch, frames, points, channels = content.shape
-        per_point = tracking.transpose(1, 2).reshape(batch * points, frames)  # (B·N, W_t)
-        temporal_allowed = (per_point[:, :, None] == per_point[:, None, :]).unsqueeze(1)
-        per_frame = tracking.reshape(batch * frames, points)  # (B·W_t, N)
-        spatial_allowed = (per_frame[:, :, None] == per_frame[:, None, :]).unsqueeze(1)
+        masks = attention_masks(tracking)
         step = update.unsqueeze(-1).to(content.dtype)
-
+        maps = None
+        if self.cost_volume is not None:
+            maps = self.cost_volume.prepare(
+                memory, spatial_shapes, content.reshape(batch * frames, points, channels)
+            )
         reference = positions.sigmoid()
+        reference_out = reference  # v1 outputs build on the undetached input reference
         out = content
         all_positions, all_visibility, all_updated = [], [], []
         for index, layer in enumerate(self.layers):
-            query_pos = self.position_embed(
-                point_embedding(reference, channels // 2, self.temperature)
-            )
-            x = content if index == 0 else out + self.content_updater(torch.cat((out, content), -1))
+            embedded = point_embedding(reference, channels // 2, self.temperature)
+            query_pos = self.position_embed(embedded)
+            x = out
+            if index > 0 or self.update_first_layer:
+                x = out + self.content_updater(torch.cat((out, content), -1))
+            correlation = None
+            if self.cost_volume is not None and maps is not None:
+                flat = reference[..., :2].reshape(batch * frames, points, 2)
+                correlation = self.cost_volume.sample(maps, flat).view(batch, frames, points, -1)
             result = layer(
-                x,
-                query_pos,
-                reference,
-                memory,
-                spatial_shapes,
-                temporal_allowed,
-                spatial_allowed,
-                update,
+                x, query_pos, reference, memory, spatial_shapes, masks, update, correlation
             )
             out = result.content
             features = self.fuse(out, result.displacement)
             delta = self.position_heads[index](features) * step
-            updated_logit = inverse_sigmoid(result.reference)
-            reference = (delta + updated_logit).sigmoid().detach()
-            # The official outputs re-read the updated position through one more sigmoid
-            # round trip than the reference handed to the next layer (≈1e-7 apart).
-            updated_output = inverse_sigmoid(updated_logit.sigmoid())
-            all_positions.append(delta + updated_output)
-            all_visibility.append(self.visibility_heads[index](features))
             if result.displacement is not None:
+                updated_logit = inverse_sigmoid(result.reference)
+                # the official outputs re-read the updated position through one more sigmoid
+                # round trip than the reference handed to the next layer (≈1e-7 apart)
+                updated_output = inverse_sigmoid(updated_logit.sigmoid())
+                all_positions.append(delta + updated_output)
                 all_updated.append(updated_output)
+                reference = (delta + updated_logit).sigmoid().detach()
+            else:
+                all_positions.append(delta + inverse_sigmoid(reference_out))
+                reference_out = (delta + inverse_sigmoid(reference)).sigmoid()
+                reference = reference_out.detach()
+            all_visibility.append(self.visibility_heads[index](features))
         return DecoderOutput(
             torch.stack(all_positions),
             torch.stack(all_visibility),

@@ -62,6 +62,7 @@ class TAPTR(nn.Module):
         window_stride: int,
         long_video_frames: int,
         window_dropout: float,
+        memory_efficient: bool = False,
         config: ModelConfig | None = None,
     ) -> None:
         super().__init__()
@@ -75,6 +76,7 @@ class TAPTR(nn.Module):
         self.window_stride = window_stride
         self.long_video_frames = long_video_frames
         self.window_dropout = window_dropout
+        self.memory_efficient = memory_efficient
         self.config = config
 
     @property

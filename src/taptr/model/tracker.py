@@ -193,9 +193,16 @@ def _initialise_points(
     memory: Tensor,
     spatial_shapes: list[tuple[int, int]],
     first: int,
+    clamp_starts: bool = False,
 ) -> None:
-    """Builds the content of points whose start frame lies in the window."""
+    """Builds the content of points whose start frame lies in the window.
+
+    With ``clamp_starts`` (TAPTR v1's memory-efficient mode, on the first window), every
+    point is initialised from frame min(start, last frame of the window) instead.
+    """
     starts = state.queries.start_frames
+    if clamp_starts:
+        starts = starts.clamp(max=first + memory.shape[1] - 1)
     new = (~state.initialised) & (starts >= first) & (starts < first + memory.shape[1])
     if not bool(new.any()):
         return
@@ -237,6 +244,9 @@ def decode_window(
     """
     index = state.next_window
     state.next_window += 1
+    if model.memory_efficient and not model.training and index == 0:
+        # v1's memory-efficient mode initialises every query from the first 8 frames only
+        _initialise_points(model, state, *frames_source(first, last), first, clamp_starts=True)
     frames = torch.arange(first, last + 1, device=state.queries.start_frames.device)
     starts = state.queries.start_frames[:, None, :]  # (B, 1, N)
     tracking = frames[None, :, None] >= starts  # (B, W_t, N)
