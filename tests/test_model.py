@@ -136,7 +136,8 @@ def test_lazy_encoding_equals_encoding_all_frames(tiny_model, generator):
         full = run_windows(
             tiny_model, queries, 20, PrecomputedFrames(tiny_model.encode(video)), video.dtype
         )
-    torch.testing.assert_close(lazy.layer_positions, full.layer_positions, atol=1e-5, rtol=0)
+    # per-frame and batched convolutions round differently: compare at float32 noise level
+    torch.testing.assert_close(lazy.layer_positions, full.layer_positions, atol=1e-4, rtol=0)
 
 
 @pytest.mark.parametrize("frames", [1, 3, 7])
@@ -215,3 +216,26 @@ def test_official_forward_rejects_bad_inputs(tiny_model):
         taptr.official_forward(
             tiny_model, video, torch.tensor([0]), torch.tensor([[0.5, 0.5]]), torch.tensor([3])
         )
+
+
+def test_fast_path_equals_faithful_path(generator):
+    from taptr.model.paths import use_path
+
+    torch.manual_seed(0)
+    model = taptr.build_model("tiny").eval()
+    video = _video(20, generator)
+    # start frames inside windows give mixed tracked/untracked frames and points
+    queries = QuerySet(
+        torch.tensor([[0, 3, 6, 9, 13, 19]]),
+        torch.rand(1, 6, 2, generator=generator),
+        torch.ones(1, 6, dtype=torch.bool),
+    )
+    fast = _track(use_path(model, "fast"), video, queries)
+    faithful = _track(use_path(model, "faithful"), video, queries)
+    # float32 noise of different summation orders, amplified by the random weights
+    torch.testing.assert_close(fast.layer_positions, faithful.layer_positions, atol=1e-4, rtol=0)
+    torch.testing.assert_close(
+        fast.layer_visibility_logits, faithful.layer_visibility_logits, atol=1e-4, rtol=0
+    )
+    with pytest.raises(ValueError, match="unknown path"):
+        use_path(model, "turbo")

@@ -5,10 +5,13 @@ from __future__ import annotations
 import torch
 
 from taptr.model.ops import (
+    deform_attn,
     gather_deform_attn,
     gather_key_aware_attn,
     key_aware_ms_deform_attn,
     ms_deform_attn,
+    padded_table,
+    projected_table,
     sample_levels,
 )
 
@@ -120,12 +123,16 @@ def test_gather_kernel_equals_grid_sample(generator):
     weights = torch.rand(*locations.shape[:-1], dtype=torch.float64, generator=generator)
     weights = weights.flatten(-2).softmax(-1).view_as(weights)
     reference = ms_deform_attn(values, shapes, locations, weights)
-    torch.testing.assert_close(gather_deform_attn(values, shapes, locations, weights), reference)
+    torch.testing.assert_close(
+        gather_deform_attn(padded_table(values, shapes), shapes, locations, weights), reference
+    )
 
     queries = torch.randn(2, 5, 2, 3, dtype=torch.float64, generator=generator)
     keys = torch.randn_like(values)
     ref_out, ref_logits = key_aware_ms_deform_attn(queries, keys, values, shapes, locations)
-    out, logits = gather_key_aware_attn(queries, keys, values, shapes, locations)
+    out, logits = gather_key_aware_attn(
+        queries, padded_table(keys, shapes), padded_table(values, shapes), shapes, locations
+    )
     torch.testing.assert_close(out, ref_out)
     torch.testing.assert_close(logits, ref_logits)
 
@@ -137,12 +144,15 @@ def test_gather_kernels_gradcheck(generator):
     weights = torch.rand(*locations.shape[:-1], dtype=torch.float64, generator=generator)
     weights.requires_grad_(True)
     assert torch.autograd.gradcheck(
-        lambda v, loc, w: gather_deform_attn(v, shapes, loc, w), (values, locations, weights)
+        lambda v, loc, w: gather_deform_attn(padded_table(v, shapes), shapes, loc, w),
+        (values, locations, weights),
     )
     queries = torch.randn(1, 2, 2, 3, dtype=torch.float64, generator=generator, requires_grad=True)
     keys = torch.randn_like(values, requires_grad=True)
     assert torch.autograd.gradcheck(
-        lambda *a: gather_key_aware_attn(a[0], a[1], a[2], shapes, a[3]),
+        lambda *a: gather_key_aware_attn(
+            a[0], padded_table(a[1], shapes), padded_table(a[2], shapes), shapes, a[3]
+        ),
         (queries, keys, values, locations),
     )
 
@@ -170,4 +180,51 @@ def test_gather_kernel_at_and_beyond_the_far_border():
     locations = edge.view(1, 4, 1, 1, 1, 2).expand(1, 4, 1, 2, 1, 2).contiguous()
     weights = torch.full((1, 4, 1, 2, 1), 0.5, dtype=torch.float64)
     reference = ms_deform_attn(values, shapes, locations, weights)
-    torch.testing.assert_close(gather_deform_attn(values, shapes, locations, weights), reference)
+    torch.testing.assert_close(
+        gather_deform_attn(padded_table(values, shapes), shapes, locations, weights), reference
+    )
+
+
+def test_key_aware_chunking_is_exact(generator, monkeypatch):
+    import taptr.model.ops.gather as gather
+
+    shapes, values, locations = _random_case(generator, queries=7)
+    queries = torch.randn(2, 7, 2, 3, dtype=torch.float64, generator=generator)
+    keys = torch.randn_like(values)
+    whole = gather_key_aware_attn(
+        queries, padded_table(keys, shapes), padded_table(values, shapes), shapes, locations
+    )
+    monkeypatch.setattr(gather, "CHUNK_ELEMENTS", 2 * 2 * 3 * 3 * 3 * 2)  # two queries a chunk
+    chunked = gather_key_aware_attn(
+        queries, padded_table(keys, shapes), padded_table(values, shapes), shapes, locations
+    )
+    torch.testing.assert_close(chunked[0], whole[0])
+    torch.testing.assert_close(chunked[1], whole[1])
+
+
+def test_projected_table_equals_padding_the_projection(generator):
+    shapes = [(3, 4), (2, 2)]
+    memory = torch.randn(2, 16, 8, generator=generator)
+    projection = torch.nn.Linear(8, 8)
+    with torch.no_grad():
+        fast = projected_table(memory, projection, shapes, heads=2)
+        plain = padded_table(projection(memory).view(2, 16, 2, 4), shapes)
+    torch.testing.assert_close(fast, plain)
+    with torch.enable_grad():  # the differentiable formulation is used when gradients are needed
+        table = projected_table(memory, projection, shapes, heads=2)
+        assert table.requires_grad
+        torch.testing.assert_close(table, plain)
+
+
+def test_deform_attn_kernels_agree(generator):
+    shapes = [(3, 4), (2, 2)]
+    memory = torch.randn(2, 16, 8, generator=generator, dtype=torch.float64)
+    projection = torch.nn.Linear(8, 8).double()
+    locations = torch.rand(2, 3, 2, 2, 2, 2, generator=generator, dtype=torch.float64)
+    weights = torch.rand(2, 3, 2, 2, 2, generator=generator, dtype=torch.float64)
+    with torch.no_grad():
+        outputs = [
+            deform_attn(kernel, memory, projection, shapes, locations, weights)
+            for kernel in ("grid_sample", "gather")
+        ]
+    torch.testing.assert_close(outputs[0], outputs[1])

@@ -13,7 +13,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from taptr.model.ops import KERNELS, KEY_AWARE_KERNELS
+from taptr.model.ops import deform_attn, key_aware_attn
 
 
 class DeformableOutput(NamedTuple):
@@ -107,12 +107,13 @@ class DeformableAttention(nn.Module):
         """
         batch, queries, _ = query.shape
         m, lv, p = self.num_heads, self.num_levels, self.num_points
-        values = self.value_proj(memory).view(batch, memory.shape[1], m, -1)  # (B, S, M, D)
         offsets = self.sampling_offsets(query).view(batch, queries, m, lv, p, 2)
         logits = self.attention_weights(query).view(batch, queries, m, lv * p)
         weights = logits.softmax(-1).view(batch, queries, m, lv, p)
         locations = sampling_locations(reference, offsets, spatial_shapes)
-        output = KERNELS[self.kernel](values, spatial_shapes, locations, weights)
+        output = deform_attn(
+            self.kernel, memory, self.value_proj, spatial_shapes, locations, weights
+        )
         return DeformableOutput(
             self.output_proj(output), logits.view(batch, queries, m, lv, p), offsets
         )
@@ -168,14 +169,17 @@ class KeyAwareDeformableAttention(nn.Module):
         """
         batch, queries, _ = query.shape
         m, lv, p = self.num_heads, self.num_levels, self.num_points
-        tokens = memory.shape[1]
-        values = self.value_proj(memory).view(batch, tokens, m, -1)  # (B, S, M, D)
-        keys = self.key_proj(memory).view(batch, tokens, m, -1)  # (B, S, M, D)
         projected = self.query_proj(query).view(batch, queries, m, -1)  # (B, Q, M, D)
         offsets = self.sampling_offsets(query).view(batch, queries, m, lv, p, 2)
         locations = sampling_locations(reference, offsets, spatial_shapes)
-        output, logits = KEY_AWARE_KERNELS[self.kernel](
-            projected, keys, values, spatial_shapes, locations
+        output, logits = key_aware_attn(
+            self.kernel,
+            projected,
+            memory,
+            self.key_proj,
+            self.value_proj,
+            spatial_shapes,
+            locations,
         )
         return DeformableOutput(self.output_proj(output), logits, offsets)
 

@@ -65,26 +65,37 @@ class DecoderOutput(NamedTuple):
 
 
 class AttentionMasks(NamedTuple):
-    """Which entries may attend to each other (True = allowed).
+    """Which entries may attend to each other: tracked and untracked ones never do.
 
     Attributes:
-        temporal: (B·N, 1, W_t, W_t) frames of one point.
-        spatial: (B·W_t, 1, N, N) points of one frame.
+        temporal: (B·N, 1, W_t, W_t) True where frames of one point may attend, or None
+            when every entry is tracked.
+        spatial: (B·W_t, 1, N, N) the same for the points of one frame, built only on the
+            faithful path (it is N² per frame), else None.
+        frame_tracking: (B·W_t, N) which points each frame tracks.
     """
 
-    temporal: Tensor
-    spatial: Tensor
+    temporal: Tensor | None
+    spatial: Tensor | None
+    frame_tracking: Tensor
 
 
-def attention_masks(tracking: Tensor) -> AttentionMasks:
-    """Tracked and untracked entries are mutually invisible; (B, W_t, N) → masks."""
+def attention_masks(tracking: Tensor, grouped: bool) -> AttentionMasks:
+    """Masks for a window's tracking pattern, (B, W_t, N) bool.
+
+    Args:
+        tracking: (B, W_t, N) entries at or after each point's start frame.
+        grouped: skip the N × N spatial mask; point attention then runs on the tracked
+            points of each frame only (untracked entries influence nothing and are
+            discarded, so the kept outputs are the same).
+    """
     batch, frames, points = tracking.shape
     per_point = tracking.transpose(1, 2).reshape(batch * points, frames)  # (B·N, W_t)
     per_frame = tracking.reshape(batch * frames, points)  # (B·W_t, N)
-    return AttentionMasks(
-        (per_point[:, :, None] == per_point[:, None, :]).unsqueeze(1),
-        (per_frame[:, :, None] == per_frame[:, None, :]).unsqueeze(1),
-    )
+    everything = grouped and bool(tracking.all())
+    temporal = None if everything else (per_point[:, :, None] == per_point[:, None, :]).unsqueeze(1)
+    spatial = None if grouped else (per_frame[:, :, None] == per_frame[:, None, :]).unsqueeze(1)
+    return AttentionMasks(temporal, spatial, per_frame)
 
 
 class DecoderLayer(nn.Module):
@@ -169,7 +180,7 @@ class DecoderLayer(nn.Module):
                 x, query_pos, reference, memory, spatial_shapes, update
             )
         x = self._temporal(x, query_pos, masks.temporal)
-        x = self._points(x, query_pos, masks.spatial)
+        x = self._points(x, query_pos, masks)
         if not self.cross_attention_first:
             x, reference, displacement, query_pos = self._cross(
                 x, query_pos, reference, memory, spatial_shapes, update
@@ -206,7 +217,7 @@ class DecoderLayer(nn.Module):
         query_pos = self.position_embed(point_embedding(reference, channels // 2, self.temperature))
         return x, reference, displacement, query_pos
 
-    def _temporal(self, x: Tensor, query_pos: Tensor, allowed: Tensor) -> Tensor:
+    def _temporal(self, x: Tensor, query_pos: Tensor, allowed: Tensor | None) -> Tensor:
         if self.temporal_attention is None or self.norm_temporal is None:
             return x
         batch, frames, points, channels = x.shape
@@ -215,14 +226,24 @@ class DecoderLayer(nn.Module):
         x = self.norm_temporal(v + self.temporal_attention(q, q, v, allowed))
         return x.view(batch, points, frames, channels).transpose(1, 2)
 
-    def _points(self, x: Tensor, query_pos: Tensor, allowed: Tensor) -> Tensor:
+    def _points(self, x: Tensor, query_pos: Tensor, masks: AttentionMasks) -> Tensor:
         if self.point_attention is None or self.norm_points is None:
             return x
         batch, frames, points, channels = x.shape
         q = (x + query_pos).reshape(batch * frames, points, channels)
         v = x.reshape(batch * frames, points, channels)  # (B·W_t, N, C)
-        x = self.norm_points(v + self.point_attention(q, q, v, allowed))
-        return x.view(batch, frames, points, channels)
+        tracked = masks.frame_tracking
+        if masks.spatial is not None or bool(tracked.all()):
+            x = self.norm_points(v + self.point_attention(q, q, v, masks.spatial))
+            return x.view(batch, frames, points, channels)
+        out = v.clone()  # untracked entries are discarded: they keep their input
+        for row in range(batch * frames):
+            keep = tracked[row].nonzero().squeeze(1)  # (n_f,) tracked points of this frame
+            if keep.numel():
+                q_row, v_row = q[row, keep][None], v[row, keep][None]  # (1, n_f, C)
+                attended = self.point_attention(q_row, q_row, v_row, None)
+                out[row, keep] = self.norm_points(v_row + attended)[0]
+        return out.view(batch, frames, points, channels)
 
 
 class Decoder(nn.Module):
@@ -263,6 +284,7 @@ class Decoder(nn.Module):
         self.visibility_heads = nn.ModuleList(nn.Linear(d_model, 3) for _ in layers)
         self.temperature = temperature
         self.update_first_layer = update_first_layer
+        self.grouped_attention = True
 
     @property
     def has_position_update(self) -> bool:
@@ -296,7 +318,7 @@ class Decoder(nn.Module):
             update: (B, W_t, N) tracking entries after the start frame.
         """
         batch, frames, points, channels = content.shape
-        masks = attention_masks(tracking)
+        masks = attention_masks(tracking, self.grouped_attention)
         step = update.unsqueeze(-1).to(content.dtype)
         maps = None
         if self.cost_volume is not None:

@@ -26,11 +26,20 @@ class EncodedFrames:
         ``self(first, last)`` → memory (B, last − first + 1, S, C).
     """
 
-    def __init__(self, model: TAPTR, video: Tensor | FrameLoader) -> None:
+    def __init__(self, model: TAPTR, video: Tensor | FrameLoader, chunk_size: int = 1) -> None:
+        """Creates the source.
+
+        Args:
+            model: the network whose `TAPTR.encode` is used.
+            video: (B, T, 3, H, W) ImageNet-normalised frames, or a loader of them.
+            chunk_size: frames per encoder call; one keeps the encoder's activations (its
+                FFN and sampling intermediates are several times a frame's memory) small.
+        """
         self.model = model
         self.load: FrameLoader = (
             video if callable(video) else (lambda first, last: video[:, first : last + 1])
         )
+        self.chunk_size = chunk_size
         self.cache: dict[int, Tensor] = {}
         self.spatial_shapes: list[tuple[int, int]] = []
 
@@ -39,10 +48,11 @@ class EncodedFrames:
         for frame in [f for f in self.cache if f < first]:
             del self.cache[frame]
         missing = [f for f in range(first, last + 1) if f not in self.cache]
-        if missing:
-            encoded = self.model.encode(self.load(missing[0], missing[-1]))
+        for start in range(0, len(missing), self.chunk_size):
+            chunk = missing[start : start + self.chunk_size]
+            encoded = self.model.encode(self.load(chunk[0], chunk[-1]))
             self.spatial_shapes = encoded.spatial_shapes
-            for offset, frame in enumerate(range(missing[0], missing[-1] + 1)):
+            for offset, frame in enumerate(range(chunk[0], chunk[-1] + 1)):
                 self.cache[frame] = encoded.memory[:, offset]
         memory = torch.stack([self.cache[f] for f in range(first, last + 1)], dim=1)
         return FrameFeatures(memory, self.spatial_shapes)

@@ -16,7 +16,10 @@ from __future__ import annotations
 
 import torch
 import torch.nn.functional as F
-from torch import Tensor
+from torch import Tensor, nn
+
+CHUNK_ELEMENTS = 1 << 24
+"""Largest intermediate of sampled keys, in elements (64 MB in float32)."""
 
 
 def padded_table(values: Tensor, spatial_shapes: list[tuple[int, int]]) -> Tensor:
@@ -38,6 +41,46 @@ def padded_table(values: Tensor, spatial_shapes: list[tuple[int, int]]) -> Tenso
         parts.append(F.pad(level, (0, 0, 0, 0, 1, 2, 1, 2)).flatten(1, 2))  # (B, (H+3)(W+3), M, D)
         start += height * width
     return torch.cat(parts, dim=1).reshape(-1, channels)
+
+
+def projected_table(
+    memory: Tensor, projection: nn.Linear, spatial_shapes: list[tuple[int, int]], heads: int
+) -> Tensor:
+    """`padded_table` of ``projection(memory)`` split into heads, built in one pass.
+
+    Without gradients, the projection's matrix product is written straight into the padded
+    layout together with its bias (only the borders are zeroed), which saves the bias
+    broadcast, the padding and the concatenation copies of the plain formulation; with
+    gradients, the plain (differentiable) formulation is used.
+
+    Args:
+        memory: (B, S, C) tokens.
+        projection: the value or key projection (C → C).
+        spatial_shapes: (H_l, W_l) per level.
+        heads: attention heads M.
+
+    Returns:
+        (B · Σ(H_l + 3)(W_l + 3) · M, C / M).
+    """
+    batch, tokens, channels = memory.shape
+    if torch.is_grad_enabled() and (memory.requires_grad or projection.weight.requires_grad):
+        return padded_table(projection(memory).view(batch, tokens, heads, -1), spatial_shapes)
+    product = torch.matmul(memory, projection.weight.t())  # (B, S, C) without the bias
+    padded_sizes = [(h + 3) * (w + 3) for h, w in spatial_shapes]
+    table = memory.new_empty(batch, sum(padded_sizes), channels)
+    start, padded_start = 0, 0
+    for (height, width), size in zip(spatial_shapes, padded_sizes, strict=True):
+        level = table[:, padded_start : padded_start + size].view(
+            batch, height + 3, width + 3, channels
+        )
+        level[:, 0].zero_()
+        level[:, height + 1 :].zero_()
+        level[:, 1 : height + 1, 0].zero_()
+        level[:, 1 : height + 1, width + 1 :].zero_()
+        interior = product[:, start : start + height * width].view(batch, height, width, channels)
+        torch.add(interior, projection.bias, out=level[:, 1 : height + 1, 1 : width + 1])
+        start, padded_start = start + height * width, padded_start + size
+    return table.view(-1, channels // heads)
 
 
 def bilinear_corners(
@@ -101,12 +144,12 @@ def gather_sum(table: Tensor, rows: Tensor, weights: Tensor) -> Tensor:
 
 
 def gather_deform_attn(
-    values: Tensor, spatial_shapes: list[tuple[int, int]], locations: Tensor, weights: Tensor
+    table: Tensor, spatial_shapes: list[tuple[int, int]], locations: Tensor, weights: Tensor
 ) -> Tensor:
-    """Standard deformable attention; same contract as `ms_deform_attn`.
+    """Standard deformable attention; `ms_deform_attn` on a `padded_table` of the values.
 
     Args:
-        values: (B, S, M, D).
+        table: (B · S_pad · M, D) values as built by `padded_table` or `projected_table`.
         spatial_shapes: (H_l, W_l) per level.
         locations: (B, Q, M, L, P, 2) in [0, 1].
         weights: (B, Q, M, L, P), softmaxed over (L, P) per head.
@@ -114,26 +157,25 @@ def gather_deform_attn(
     Returns:
         (B, Q, M·D).
     """
-    batch, _, heads, channels = values.shape
+    batch, queries, heads = locations.shape[:3]
     rows, combined = bilinear_corners(locations, spatial_shapes, scale=weights)
-    table = padded_table(values, spatial_shapes)
     out = gather_sum(table, rows.flatten(-2), combined.flatten(-2))  # (B, Q, M, D)
-    return out.view(batch, -1, heads * channels)
+    return out.view(batch, queries, heads * table.shape[-1])
 
 
 def gather_key_aware_attn(
     queries: Tensor,
-    keys: Tensor,
-    values: Tensor,
+    key_table: Tensor,
+    value_table: Tensor,
     spatial_shapes: list[tuple[int, int]],
     locations: Tensor,
 ) -> tuple[Tensor, Tensor]:
-    """Key-aware deformable attention; same contract as `key_aware_ms_deform_attn`.
+    """Key-aware deformable attention; `key_aware_ms_deform_attn` on padded tables.
 
     Args:
         queries: (B, Q, M, D) projected queries.
-        keys: (B, S, M, D).
-        values: (B, S, M, D).
+        key_table: (B · S_pad · M, D) keys, see `padded_table` / `projected_table`.
+        value_table: (B · S_pad · M, D) values.
         spatial_shapes: (H_l, W_l) per level.
         locations: (B, Q, M, L, P, 2) in [0, 1].
 
@@ -143,13 +185,28 @@ def gather_key_aware_attn(
     batch, num_queries, heads, channels = queries.shape
     levels, points = locations.shape[3:5]
     rows, corner_weights = bilinear_corners(locations, spatial_shapes)
-    sampled_keys = gather_sum(
-        padded_table(keys, spatial_shapes), rows, corner_weights
-    )  # (B, Q, M, L·P, D)
-    logits = torch.einsum("bqmd,bqmjd->bqmj", queries, sampled_keys) / channels**0.5
+    # sampled keys are (B, Q, M, L·P, D): bound their memory by taking queries in chunks
+    chunk = max(1, CHUNK_ELEMENTS // (batch * heads * levels * points * channels))
+    logits = (
+        torch.cat(
+            [
+                torch.einsum(
+                    "bqmd,bqmjd->bqmj",
+                    queries[:, start : start + chunk],
+                    gather_sum(
+                        key_table,
+                        rows[:, start : start + chunk],
+                        corner_weights[:, start : start + chunk],
+                    ),
+                )
+                for start in range(0, num_queries, chunk)
+            ],
+            dim=1,
+        )
+        / channels**0.5
+    )  # (B, Q, M, L·P)
     combined = corner_weights * logits.softmax(-1).unsqueeze(-1)  # (B, Q, M, L·P, 4)
-    table = padded_table(values, spatial_shapes)
-    out = gather_sum(table, rows.flatten(-2), combined.flatten(-2))
+    out = gather_sum(value_table, rows.flatten(-2), combined.flatten(-2))
     return out.view(batch, num_queries, heads * channels), logits.view(
         batch, num_queries, heads, levels, points
     )

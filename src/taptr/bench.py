@@ -1,0 +1,294 @@
+"""Speed and memory benchmark of the model, each configuration in its own process.
+
+A run tracks N random points (all starting on frame 0) through T random frames with
+random (seeded) weights and reports wall time per frame, a per-stage breakdown (backbone,
+input projections, encoder, decoder), peak resident memory, peak CUDA memory, parameters
+and, optionally, FLOPs. Two paths are compared in the same command:
+
+- ``faithful``: the straightforward implementation (``grid_sample`` deformable attention,
+  N × N attention masks, every frame encoded up front in chunks of 24, as the official
+  evaluation does);
+- ``fast``: the default path (gather kernel, point attention on tracked points only,
+  frames encoded once per window and dropped when no window needs them).
+
+Each path runs in a fresh subprocess so that peak memory is its own. FLOPs come from
+``torch.utils.flop_counter`` (2 per multiply-accumulate; convolutions, matmuls and
+attention counted with the math SDPA backend; bilinear sampling and gathers not counted).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from collections import defaultdict
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+PATHS = ("faithful", "fast")
+STAGES = ("backbone", "input_projections", "encoder", "decoder")
+
+
+@dataclass(frozen=True)
+class BenchConfig:
+    """One benchmark case.
+
+    Attributes:
+        preset: model preset (``taptrv2``, ``taptrv1``, ``small``, ``tiny``).
+        frames: video length T.
+        points: query points N.
+        size: (height, width) of the model input.
+        threads: torch CPU threads.
+        device: ``cpu`` or ``cuda``.
+        dtype: ``float32`` or ``bfloat16`` (autocast on CUDA only).
+        path: ``faithful`` or ``fast``.
+        flops: also count FLOPs (a second, slower pass).
+        seed: seed of the weights, video and queries.
+    """
+
+    preset: str = "taptrv2"
+    frames: int = 24
+    points: int = 800
+    size: tuple[int, int] = (512, 512)
+    threads: int = 2
+    device: str = "cpu"
+    dtype: str = "float32"
+    path: str = "fast"
+    flops: bool = False
+    seed: int = 0
+
+
+@dataclass
+class BenchResult:
+    """Measurements of one case (times in seconds, memory in bytes)."""
+
+    config: dict[str, Any]
+    seconds_per_frame: float
+    stage_seconds: dict[str, float]
+    peak_rss: int
+    peak_cuda: int | None
+    parameters: int
+    flops: int | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+@contextmanager
+def _stage_timer(model: nn.Module, device: str) -> Iterator[dict[str, float]]:
+    """Accumulates wall time spent in each top-level stage of the model."""
+    totals: dict[str, float] = defaultdict(float)
+    starts: dict[str, float] = {}
+    handles = []
+
+    def sync() -> None:
+        if device.startswith("cuda"):
+            torch.cuda.synchronize()
+
+    for name in STAGES:
+        module = getattr(model, name)
+
+        def before(*_: Any, name: str = name) -> None:
+            sync()
+            starts[name] = time.perf_counter()
+
+        def after(*_: Any, name: str = name) -> None:
+            sync()
+            totals[name] += time.perf_counter() - starts[name]
+
+        handles += [module.register_forward_pre_hook(before), module.register_forward_hook(after)]
+    try:
+        yield totals
+    finally:
+        for handle in handles:
+            handle.remove()
+
+
+def _inputs(config: BenchConfig) -> tuple[torch.Tensor, Any]:
+    from taptr.model.tracker import QuerySet
+
+    generator = torch.Generator().manual_seed(config.seed)
+    video = torch.randn(1, config.frames, 3, *config.size, generator=generator)
+    queries = QuerySet(
+        torch.zeros(1, config.points, dtype=torch.long),
+        torch.rand(1, config.points, 2, generator=generator) * 0.9 + 0.05,
+        torch.ones(1, config.points, dtype=torch.bool),
+    )
+    return video, queries
+
+
+def _track(model: nn.Module, config: BenchConfig, video: torch.Tensor, queries: Any) -> Any:
+    from taptr.model.frames import EncodedFrames, PrecomputedFrames
+    from taptr.model.tracker import QuerySet, run_windows
+
+    device = torch.device(config.device)
+    video = video.to(device)
+    queries = QuerySet(*(q.to(device) for q in queries))
+    if config.path == "faithful":
+        frames = PrecomputedFrames(model.encode(video, chunk_size=24))
+    else:
+        frames = EncodedFrames(model, video)
+    return run_windows(model, queries, config.frames, frames, video.dtype)
+
+
+def run_case(config: BenchConfig, positions_out: str | None = None) -> BenchResult:
+    """Runs one case in this process (use `run_isolated` for a clean peak-memory reading)."""
+    from taptr.model.build import build_model
+    from taptr.model.paths import use_path
+
+    torch.set_num_threads(config.threads)
+    torch.manual_seed(config.seed)
+    model = build_model(config.preset).eval().to(config.device)
+    use_path(model, config.path)
+    video, queries = _inputs(config)
+    autocast = torch.autocast("cuda", dtype=torch.bfloat16, enabled=config.dtype == "bfloat16")
+    if config.device.startswith("cuda"):
+        torch.cuda.reset_peak_memory_stats()
+    with torch.no_grad(), autocast, _stage_timer(model, config.device) as stages:
+        start = time.perf_counter()
+        output = _track(model, config, video, queries)
+        if config.device.startswith("cuda"):
+            torch.cuda.synchronize()
+        elapsed = time.perf_counter() - start
+    if positions_out:
+        np.save(positions_out, output.positions[0].float().cpu().numpy())
+        np.save(
+            positions_out + ".logits.npy", output.visibility_logits[0, ..., 1].float().cpu().numpy()
+        )
+    flops = _count_flops(model, config, video, queries) if config.flops else None
+    return BenchResult(
+        config=asdict(config),
+        seconds_per_frame=elapsed / config.frames,
+        stage_seconds=dict(stages),
+        peak_rss=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
+        peak_cuda=torch.cuda.max_memory_allocated() if config.device.startswith("cuda") else None,
+        parameters=sum(p.numel() for p in model.parameters()),
+        flops=flops,
+    )
+
+
+def _count_flops(model: nn.Module, config: BenchConfig, video: torch.Tensor, queries: Any) -> int:
+    from torch.nn.attention import SDPBackend, sdpa_kernel
+    from torch.utils.flop_counter import FlopCounterMode
+
+    counter = FlopCounterMode(display=False)
+    with torch.no_grad(), sdpa_kernel(SDPBackend.MATH), counter:
+        _track(model, config, video, queries)
+    return int(counter.get_total_flops())
+
+
+def run_isolated(config: BenchConfig, positions_out: str | None = None) -> BenchResult:
+    """Runs one case in a fresh Python process and returns its measurements."""
+    payload = json.dumps({"config": asdict(config), "positions_out": positions_out})
+    command = [sys.executable, "-m", "taptr.bench", payload]
+    done = subprocess.run(command, capture_output=True, text=True, check=False)
+    if done.returncode != 0:
+        raise RuntimeError(f"benchmark worker failed:\n{done.stderr.strip()[-2000:]}")
+    data = json.loads(done.stdout.strip().splitlines()[-1])
+    return BenchResult(**data)
+
+
+def compare(base: BenchConfig) -> dict[str, Any]:
+    """Runs the faithful and the fast path of a case; returns both and their agreement."""
+    results = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for path in PATHS:
+            out = os.path.join(tmp, f"{path}.npy")
+            results[path] = run_isolated(_with(base, path=path), out)
+        faithful, fast = (np.load(os.path.join(tmp, f"{p}.npy")) for p in PATHS)
+        logits = [np.load(os.path.join(tmp, f"{p}.npy.logits.npy")) for p in PATHS]
+    firm = np.abs(logits[0]) >= 1e-4
+    agreement = {
+        "max_position_difference": float(np.abs(faithful - fast).max()),
+        "visibility_decisions_equal": bool(((logits[0] > 0) == (logits[1] > 0))[firm].all()),
+        "speedup": results["faithful"].seconds_per_frame / results["fast"].seconds_per_frame,
+        "memory_ratio": results["fast"].peak_rss / results["faithful"].peak_rss,
+    }
+    return {"results": results, "agreement": agreement}
+
+
+def _with(config: BenchConfig, **changes: Any) -> BenchConfig:
+    return BenchConfig(**{**asdict(config), **changes})
+
+
+def machine() -> dict[str, Any]:
+    """What the numbers were measured on."""
+    info: dict[str, Any] = {
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "cpu": platform.processor() or platform.machine(),
+        "cpu_count": os.cpu_count(),
+    }
+    if torch.cuda.is_available():
+        info["cuda_device"] = torch.cuda.get_device_name()
+    return info
+
+
+def format_table(rows: list[BenchResult]) -> str:
+    """A plain-text table of results."""
+    header = (
+        f"{'preset':8} {'path':9} {'T':>4} {'N':>6} {'size':>9} {'s/frame':>8} "
+        + " ".join(f"{s[:8]:>8}" for s in STAGES)
+        + f" {'peak RSS':>9} {'params':>11} {'GFLOP/frame':>11}"
+    )
+    lines = [header]
+    for row in rows:
+        c = row.config
+        stages = " ".join(f"{row.stage_seconds.get(s, 0.0) / c['frames']:8.3f}" for s in STAGES)
+        gflops = f"{row.flops / c['frames'] / 1e9:11.1f}" if row.flops else f"{'-':>11}"
+        size = f"{c['size'][0]}x{c['size'][1]}"
+        lines.append(
+            f"{c['preset']:8} {c['path']:9} {c['frames']:4d} {c['points']:6d} {size:>9} "
+            f"{row.seconds_per_frame:8.3f} {stages} {row.peak_rss / 2**30:8.2f}G "
+            f"{row.parameters:11,d} {gflops}"
+        )
+    return "\n".join(lines)
+
+
+def peak_flops(threads: int, size: int = 2048, repeats: int = 5) -> float:
+    """Measured fp32 matmul FLOP rate of this machine (FLOP/s), the roofline reference."""
+    torch.set_num_threads(threads)
+    a, b = torch.randn(size, size), torch.randn(size, size)
+    torch.mm(a, b)
+    best = float("inf")
+    for _ in range(repeats):
+        start = time.perf_counter()
+        torch.mm(a, b)
+        best = min(best, time.perf_counter() - start)
+    return 2 * size**3 / best
+
+
+def write_json(path: str | os.PathLike[str], data: Any) -> Path:
+    """Writes results as JSON, atomically."""
+    from taptr.files import atomic_path
+
+    def default(obj: Any) -> Any:
+        if isinstance(obj, BenchResult):
+            return asdict(obj)
+        raise TypeError(type(obj).__name__)
+
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(data, indent=1, default=default) + "\n")
+    return Path(path)
+
+
+def main() -> None:
+    """Worker entry point: ``python -m taptr.bench '<json request>'`` prints one JSON line."""
+    request = json.loads(sys.argv[1])
+    config = BenchConfig(**{**request["config"], "size": tuple(request["config"]["size"])})
+    result = run_case(config, request.get("positions_out"))
+    sys.stdout.write(json.dumps(asdict(result)) + "\n")
+
+
+if __name__ == "__main__":
+    main()

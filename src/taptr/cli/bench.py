@@ -1,0 +1,93 @@
+"""``taptr bench``: time and memory of the faithful and the fast path, side by side."""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    """Registers the subcommand."""
+    parser = subparsers.add_parser(
+        "bench",
+        help="measure speed, memory and FLOPs (random weights and video)",
+        description="Runs each preset × points case on the faithful path (grid_sample attention, "
+        "all frames encoded up front) and the fast path (gather attention, frames encoded per "
+        "window), each in its own process, and reports seconds per frame, a per-stage breakdown, "
+        "peak memory and the agreement of their outputs.",
+    )
+    parser.add_argument("--preset", nargs="+", default=["taptrv2"], help="one or more presets")
+    parser.add_argument("--frames", type=int, default=24)
+    parser.add_argument("--points", type=int, nargs="+", default=[800], help="one or more N")
+    parser.add_argument("--size", type=int, nargs=2, default=[512, 512], metavar=("H", "W"))
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--dtype", choices=["float32", "bfloat16"], default="float32")
+    parser.add_argument("--path", choices=["both", "fast", "faithful"], default="both")
+    parser.add_argument("--flops", action="store_true", help="also count FLOPs (slower)")
+    parser.add_argument("--json", metavar="FILE", help="write all results to this JSON file")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Runs the cases and prints the table."""
+    from taptr.bench import (
+        BenchConfig,
+        compare,
+        format_table,
+        machine,
+        peak_flops,
+        run_isolated,
+        write_json,
+    )
+
+    command = "taptr " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    rows, cases = [], []
+    for preset in args.preset:
+        for points in args.points:
+            config = BenchConfig(
+                preset=preset,
+                frames=args.frames,
+                points=points,
+                size=tuple(args.size),
+                threads=args.threads,
+                device=args.device,
+                dtype=args.dtype,
+                flops=args.flops,
+            )
+            if args.path == "both":
+                case = compare(config)
+                rows += list(case["results"].values())
+                cases.append({"preset": preset, "points": points, **case})
+            else:
+                result = run_isolated(BenchConfig(**{**config.__dict__, "path": args.path}))
+                rows.append(result)
+                cases.append({"preset": preset, "points": points, "results": {args.path: result}})
+    print(format_table(rows))
+    for case in cases:
+        agreement = case.get("agreement")
+        if agreement:
+            print(
+                f"{case['preset']} N={case['points']}: fast/faithful speed-up "
+                f"{agreement['speedup']:.2f}x, peak RSS ratio {agreement['memory_ratio']:.2f}, "
+                f"max |Δ position| {agreement['max_position_difference']:.2e}, "
+                f"visibility decisions equal: {agreement['visibility_decisions_equal']}"
+            )
+    rate = peak_flops(args.threads) if args.device == "cpu" else None
+    if rate:
+        print(f"measured fp32 matmul peak: {rate / 1e9:.0f} GFLOP/s on {args.threads} threads")
+        for row in rows:
+            if row.flops:
+                achieved = row.flops / (row.seconds_per_frame * row.config["frames"])
+                print(
+                    f"  {row.config['preset']} {row.config['path']} N={row.config['points']}: "
+                    f"{achieved / 1e9:.0f} GFLOP/s = {achieved / rate:.0%} of peak"
+                )
+    print(f"command: {command}")
+    if args.json:
+        write_json(
+            args.json,
+            {"command": command, "machine": machine(), "peak_flops": rate, "cases": cases},
+        )
+    return 0
