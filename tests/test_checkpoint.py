@@ -167,3 +167,13 @@ def test_convert_cli_reports_a_wrong_file_in_one_line(tmp_path, capsys):
     assert err.startswith("taptr convert: error:") and "notes.txt" in err
     assert "Traceback" not in err
     assert not (tmp_path / "out.pth").exists()
+
+
+def test_convert_keeps_a_calibrated_threshold(tmp_path):
+    from taptr.checkpoint import read_visibility_threshold
+
+    source = save_checkpoint(
+        taptr.build_model("tiny"), tmp_path / "cal.pth", visibility_threshold=0.3
+    )
+    assert cli_main(["convert", str(source), str(tmp_path / "out.pth"), "--half"]) == 0
+    assert read_visibility_threshold(tmp_path / "out.pth") == 0.3

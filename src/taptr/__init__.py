@@ -12,6 +12,7 @@ __version__ = "0.1.0"
 
 _EXPORTS = {
     "build_model": "taptr.model.build",
+    "from_pretrained": "taptr.hub",
     "load_checkpoint": "taptr.checkpoint",
     "save_checkpoint": "taptr.checkpoint",
     "official_forward": "taptr.official",

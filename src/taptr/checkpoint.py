@@ -6,7 +6,9 @@ other Python object in a file is reported by name and never unpickled.
 
 taptr's own format is a dict ``{"format": "taptr", "version": 1, "config": <ModelConfig as
 plain data>, "model": <state dict>, "ema": <state dict, optional>}``; training checkpoints
-add more entries next to these. Inference uses ``ema`` when present.
+add more entries next to these. Inference uses ``ema`` when present. An optional
+``"visibility_threshold"`` (a float in (0, 1), written by ``taptr calibrate``) is the threshold
+`taptr.Predictor.from_pretrained` uses for the file when none is passed.
 """
 
 from __future__ import annotations
@@ -195,8 +197,20 @@ def load_checkpoint(path: str | os.PathLike[str], *, device: str | torch.device 
     return model.to(device).eval()
 
 
-def checkpoint_dict(model: TAPTR, ema: Mapping[str, Tensor] | None = None) -> dict[str, Any]:
-    """Taptr's format for ``model`` (and optional EMA weights), ready for ``torch.save``."""
+def checkpoint_dict(
+    model: TAPTR,
+    ema: Mapping[str, Tensor] | None = None,
+    *,
+    visibility_threshold: float | None = None,
+) -> dict[str, Any]:
+    """Taptr's format for ``model`` (and optional EMA weights), ready for ``torch.save``.
+
+    Args:
+        model: the model (its ``config`` is stored with the weights).
+        ema: optional EMA weights, stored under ``ema``.
+        visibility_threshold: optional calibrated threshold in (0, 1), stored under
+            ``visibility_threshold``.
+    """
     if model.config is None:
         raise ValueError("the model has no config; build it with taptr.build_model")
     data: dict[str, Any] = {
@@ -207,7 +221,23 @@ def checkpoint_dict(model: TAPTR, ema: Mapping[str, Tensor] | None = None) -> di
     }
     if ema is not None:
         data["ema"] = {k: v.detach().cpu() for k, v in ema.items()}
+    if visibility_threshold is not None:
+        if not 0 < visibility_threshold < 1:
+            raise ValueError(f"visibility_threshold must lie in (0, 1), got {visibility_threshold}")
+        data["visibility_threshold"] = float(visibility_threshold)
     return data
+
+
+def read_visibility_threshold(path: str | os.PathLike[str]) -> float | None:
+    """The calibrated visibility threshold stored in a checkpoint file, or None.
+
+    Only taptr-format files can hold one; the authors' release never does.
+    """
+    checkpoint = read_file(path)
+    if not isinstance(checkpoint, Mapping) or checkpoint.get("format") != FORMAT:
+        return None
+    value = checkpoint.get("visibility_threshold")
+    return None if value is None else float(value)
 
 
 def save_checkpoint(
@@ -216,6 +246,7 @@ def save_checkpoint(
     *,
     ema: Mapping[str, Tensor] | None = None,
     half: bool = False,
+    visibility_threshold: float | None = None,
 ) -> Path:
     """Writes ``model`` in taptr's format, atomically.
 
@@ -224,8 +255,9 @@ def save_checkpoint(
         path: destination file.
         ema: optional EMA weights, stored under ``ema`` and preferred at load time.
         half: store floating tensors as float16 (half the size; loading casts back).
+        visibility_threshold: optional calibrated threshold in (0, 1) stored with the weights.
     """
-    data = checkpoint_dict(model, ema)
+    data = checkpoint_dict(model, ema, visibility_threshold=visibility_threshold)
     if half:
         for key in ("model", "ema"):
             if key in data:

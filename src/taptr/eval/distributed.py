@@ -11,6 +11,8 @@ import os
 from collections.abc import Iterator
 from typing import Any, NamedTuple
 
+from taptr.distributed import gather_objects, join_process_group, launched_world_size
+
 
 class Shard(NamedTuple):
     """This process's place among the evaluating processes.
@@ -42,7 +44,7 @@ def resolve_device(device: str | None) -> str:
 
     if device is None:
         device = "cuda" if torch.cuda.is_available() else "cpu"
-    if device == "cuda" and int(os.environ.get("WORLD_SIZE", "1")) > 1:
+    if device == "cuda" and launched_world_size() > 1:
         device = f"cuda:{int(os.environ.get('LOCAL_RANK', '0'))}"
     return device
 
@@ -57,31 +59,25 @@ def process_group(device: str) -> Iterator[Shard]:
     Args:
         device: this process's device; CUDA devices use NCCL, others gloo.
     """
-    if int(os.environ.get("WORLD_SIZE", "1")) <= 1:
+    if launched_world_size() <= 1:
         yield SINGLE_PROCESS
         return
     import torch
     import torch.distributed as dist
 
-    if dist.is_initialized():
-        yield Shard(dist.get_rank(), dist.get_world_size())
-        return
     cuda = torch.device(device).type == "cuda"
-    if cuda:
+    if cuda and not dist.is_initialized():
         torch.cuda.set_device(torch.device(device))
-    dist.init_process_group("nccl" if cuda else "gloo")
+    created = join_process_group(cuda)
     try:
         yield Shard(dist.get_rank(), dist.get_world_size())
     finally:
-        dist.destroy_process_group()
+        if created:
+            dist.destroy_process_group()
 
 
 def gather(items: list[Any], shard: Shard) -> list[Any]:
     """Every process's ``items``, concatenated in rank order, on every process."""
     if shard.world_size == 1:
         return list(items)
-    import torch.distributed as dist
-
-    parts: list[Any] = [None] * shard.world_size
-    dist.all_gather_object(parts, items)
-    return [item for part in parts for item in part]
+    return [item for part in gather_objects(items) for item in part]

@@ -29,6 +29,9 @@ METRIC_NAMES = (
     "average_jaccard",
     "average_pts_within_thresh",
 )
+
+CALIBRATION_METRICS = {"aj": "average_jaccard", "oa": "occlusion_accuracy"}
+"""Metrics a visibility threshold can be calibrated for, by short name."""
 """tapnet's key names, in tapnet's order."""
 
 

@@ -84,8 +84,21 @@ class TAPTR(nn.Module):
         """Decoder depth."""
         return len(self.decoder.layers)
 
+    def encode_images(self, images: Tensor) -> FrameFeatures:
+        """Backbone, input projections and encoder on a batch of independent images.
+
+        Args:
+            images: (N, 3, H, W) ImageNet-normalised frames.
+
+        Returns:
+            `FrameFeatures` whose memory is (N, S, C) (one image per row).
+        """
+        maps = self.input_projections(self.backbone(images))
+        spatial_shapes = [(m.shape[-2], m.shape[-1]) for m in maps]
+        return FrameFeatures(self.encoder(maps), spatial_shapes)
+
     def encode(self, frames: Tensor, chunk_size: int | None = None) -> FrameFeatures:
-        """Backbone, input projections and encoder on every frame independently.
+        """Encodes every frame of a batch of videos independently.
 
         Args:
             frames: (B, T, 3, H, W) ImageNet-normalised frames.
@@ -97,13 +110,14 @@ class TAPTR(nn.Module):
         batch, num_frames = frames.shape[:2]
         flat = frames.flatten(0, 1)  # (B·T, 3, H, W)
         step = chunk_size or flat.shape[0]
-        chunks, spatial_shapes = [], []
-        for start in range(0, flat.shape[0], step):
-            maps = self.input_projections(self.backbone(flat[start : start + step]))
-            spatial_shapes = [(m.shape[-2], m.shape[-1]) for m in maps]
-            chunks.append(self.encoder(maps))  # (chunk, S, C)
-        memory = torch.cat(chunks).unflatten(0, (batch, num_frames))  # (B, T, S, C)
-        return FrameFeatures(memory, spatial_shapes)
+        chunks = [
+            self.encode_images(flat[start : start + step])
+            for start in range(0, flat.shape[0], step)
+        ]
+        memory = torch.cat([c.memory for c in chunks]).unflatten(
+            0, (batch, num_frames)
+        )  # (B, T, S, C)
+        return FrameFeatures(memory, chunks[0].spatial_shapes)
 
     def initial_content(
         self, memory: Tensor, spatial_shapes: list[tuple[int, int]], positions: Tensor

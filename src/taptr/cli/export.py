@@ -1,0 +1,93 @@
+"""``taptr export --format onnx|torchscript --out DIR``: the per-window model step as graphs.
+
+Writes three graphs (frames → memory, memory → initial point content, one window of the
+decoder with its carried state) and ``taptr-export.json`` (input size, window rules),
+enough for a sliding-window loop outside Python; ``taptr.export.runner`` is the reference
+loop. ``--check`` tracks the package's sample clip with both the model and the graphs and
+prints the largest differences and the time each took.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    """Registers the subcommand."""
+    parser = subparsers.add_parser(
+        "export",
+        help="export the per-window model step as ONNX or TorchScript graphs",
+        description="Writes encoder, init_points and decode_window graphs (batch 1; dynamic "
+        "frame and point counts) and taptr-export.json to --out. See docs/EXPORT.md.",
+    )
+    parser.add_argument("--format", required=True, choices=("onnx", "torchscript"))
+    parser.add_argument("--out", required=True, help="output folder")
+    parser.add_argument(
+        "--checkpoint",
+        default=None,
+        help="checkpoint file or model name (default: the bundled taptr-small-synthetic model)",
+    )
+    parser.add_argument(
+        "--input-size",
+        type=int,
+        nargs=2,
+        metavar=("HEIGHT", "WIDTH"),
+        default=None,
+        help="frame size the graphs take (default: the model's, 512 512 for the paper model)",
+    )
+    parser.add_argument(
+        "--check",
+        action="store_true",
+        help="compare the graphs with the model on the sample clip and time both (CPU)",
+    )
+    parser.add_argument("--check-frames", type=int, default=11, help="clip length for --check")
+    parser.add_argument("--check-points", type=int, default=8, help="points for --check")
+    parser.add_argument(
+        "--repeats", type=int, default=1, help="--check times each runtime this often (best)"
+    )
+    parser.add_argument(
+        "--threads", type=int, default=None, help="CPU threads for --check (both runtimes)"
+    )
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Exports, then optionally checks parity and speed."""
+    import torch
+
+    from taptr.export.graphs import export_model
+    from taptr.export.manifest import GRAPHS
+    from taptr.export.verify import compare
+    from taptr.hub import resolve_model
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    model = resolve_model(args.checkpoint)
+    began = time.perf_counter()
+    manifest = export_model(model, args.out, args.format, args.input_size)
+    files = ", ".join(manifest.graph_path(args.out, name).name for name in GRAPHS)
+    height, width = manifest.input_size
+    print(
+        f"wrote {args.out}: {files}, taptr-export.json ({width}×{height} frames, "
+        f"S = {manifest.num_tokens} tokens, C = {manifest.d_model}) in "
+        f"{time.perf_counter() - began:.1f} s"
+    )
+    if args.check:
+        parity = compare(
+            model,
+            args.out,
+            num_frames=args.check_frames,
+            num_points=args.check_points,
+            repeats=args.repeats,
+            threads=args.threads,
+        )
+        runtime = "onnxruntime" if manifest.format == "onnx" else "TorchScript"
+        print(
+            f"check on the {args.check_frames}-frame sample clip, {args.check_points} points: "
+            f"max |Δ| positions {parity.position_error:.2e} "
+            f"({parity.position_error_pixels:.2e} px), visibility logits "
+            f"{parity.visibility_error:.2e}; PyTorch {parity.torch_seconds:.2f} s, "
+            f"{runtime} {parity.exported_seconds:.2f} s (best of {args.repeats})"
+        )
+    return 0

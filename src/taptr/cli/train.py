@@ -1,0 +1,87 @@
+"""``taptr train``: train or fine-tune a model from a config file and ``KEY=VALUE`` overrides.
+
+Run it alone, or under ``torchrun --nproc-per-node G -m taptr.cli.main train ...`` for data
+parallelism (NCCL on GPUs, gloo on CPU).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from taptr.train.config import TrainConfig
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    """Registers the subcommand."""
+    parser = subparsers.add_parser(
+        "train",
+        help="train a model (presets: taptrv2, small)",
+        description="Trains TAPTRv2 on Kubric-layout data. Settings come from the taptrv2 "
+        "preset, then --config, then KEY=VALUE overrides (e.g. preset=small steps=100 "
+        "data.root=DIR model.d_model=64). The resolved config is saved as "
+        "OUT_DIR/config.json; checkpoints go to OUT_DIR/checkpoint.pt and the final EMA "
+        "weights to OUT_DIR/model.pt.",
+    )
+    parser.add_argument("overrides", nargs="*", metavar="KEY=VALUE", help="config overrides")
+    parser.add_argument("--config", help="TOML or JSON config file (see configs/)")
+    parser.add_argument("--out", help="run folder (overrides out_dir)")
+    parser.add_argument(
+        "--init-from",
+        metavar="CHECKPOINT",
+        help="start from these weights: a taptr checkpoint or the authors' release",
+    )
+    parser.add_argument(
+        "--resume",
+        nargs="?",
+        const="",
+        metavar="CHECKPOINT",
+        help="continue a run (default: OUT_DIR/checkpoint.pt; without --config, the "
+        "checkpoint's own config is used)",
+    )
+    parser.set_defaults(func=run)
+
+
+def _config(args: argparse.Namespace) -> TrainConfig:
+    """The preset, then the file (or the resumed checkpoint's config), then the overrides."""
+    from taptr.checkpoint import read_file
+    from taptr.train.config import from_dict, merge, parse_overrides, read_config_file
+
+    overrides = list(args.overrides)
+    if args.out:
+        overrides.append(f"out_dir={args.out}")
+    if args.init_from:
+        overrides.append(f"init_from={args.init_from}")
+    if args.config:
+        base = read_config_file(args.config)
+    elif args.resume:
+        base = read_file(args.resume).get("train_config")
+        if base is None:
+            raise ValueError(f"{args.resume} is not a taptr training checkpoint")
+    else:
+        base = {}
+    return from_dict(merge(base, parse_overrides(overrides)))
+
+
+def run(args: argparse.Namespace) -> int:
+    """Trains; prints the path of the final weights."""
+    from taptr.train.checkpoint import CHECKPOINT_NAME
+    from taptr.train.loop import NonFiniteLossError, train
+
+    config = _config(args)
+    resume = None
+    if args.resume is not None:
+        resume = Path(args.resume or Path(config.out_dir) / CHECKPOINT_NAME)
+        if not resume.is_file():
+            raise FileNotFoundError(f"no checkpoint to resume from: {resume}")
+    logging.getLogger("taptr.train").setLevel(logging.INFO)  # progress without -v
+    try:
+        final = train(config, resume=resume)
+    except NonFiniteLossError as error:
+        print(f"taptr train: {error}")
+        return 1
+    print(f"wrote {final}")
+    return 0

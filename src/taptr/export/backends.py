@@ -1,0 +1,131 @@
+"""Running exported graphs: onnxruntime sessions or TorchScript modules behind one interface.
+
+Both classes implement `taptr.export.runner.Steps` (numpy in, numpy out), so the same
+reference loop drives either format. `load_steps` picks the class from the manifest.
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from typing import Any
+
+import numpy as np
+
+from taptr.export.manifest import GRAPHS, INPUT_NAMES, ExportManifest
+
+
+class OnnxSteps:
+    """The graphs of an ONNX export, run by onnxruntime.
+
+    Args:
+        directory: the export folder.
+        threads: intra-op threads per session (default: onnxruntime's, one per core).
+        providers: onnxruntime execution providers (default: the CPU provider).
+    """
+
+    def __init__(
+        self,
+        directory: str | os.PathLike[str],
+        *,
+        threads: int | None = None,
+        providers: list[str] | None = None,
+    ) -> None:
+        try:
+            import onnxruntime
+        except ImportError:
+            raise ModuleNotFoundError(
+                "running ONNX graphs needs onnxruntime: pip install 'taptr[export]'"
+            ) from None
+        self.manifest = ExportManifest.load(directory)
+        if self.manifest.format != "onnx":
+            raise ValueError(f"{directory} holds a {self.manifest.format} export, not onnx")
+        options = onnxruntime.SessionOptions()
+        if threads is not None:
+            options.intra_op_num_threads = threads
+            options.inter_op_num_threads = 1
+        self.sessions = {
+            name: onnxruntime.InferenceSession(
+                str(self.manifest.graph_path(directory, name)),
+                options,
+                providers=providers or ["CPUExecutionProvider"],
+            )
+            for name in GRAPHS
+        }
+
+    def _run(self, name: str, *inputs: np.ndarray) -> list[Any]:
+        feed = dict(zip(INPUT_NAMES[name], inputs, strict=True))
+        return self.sessions[name].run(None, feed)
+
+    def encode(self, frames: np.ndarray) -> np.ndarray:
+        """Frames (F, 3, H, W) RGB in [0, 1] → memory (F, S, C)."""
+        return self._run("encoder", np.ascontiguousarray(frames, np.float32))[0]
+
+    def init_points(self, memory: np.ndarray, positions: np.ndarray) -> np.ndarray:
+        """Memory (S, C) of one frame, normalised positions (N, 2) → content (N, C)."""
+        return self._run("init_points", memory, positions)[0]
+
+    def decode(self, *inputs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """One window; inputs and outputs as `taptr.export.runner.Steps.decode`."""
+        positions, visibility, content = self._run("decode_window", *inputs)
+        return positions, visibility, content
+
+
+class TorchScriptSteps:
+    """The graphs of a TorchScript export, run by ``torch.jit`` on the CPU.
+
+    Args:
+        directory: the export folder.
+    """
+
+    def __init__(self, directory: str | os.PathLike[str]) -> None:
+        import torch
+
+        self.torch = torch
+        self.manifest = ExportManifest.load(directory)
+        if self.manifest.format != "torchscript":
+            raise ValueError(f"{directory} holds a {self.manifest.format} export, not torchscript")
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", FutureWarning)  # TorchScript is deprecated upstream
+            self.modules = {
+                name: torch.jit.load(
+                    str(self.manifest.graph_path(directory, name)), map_location="cpu"
+                )
+                for name in GRAPHS
+            }
+
+    def _run(self, name: str, *inputs: np.ndarray) -> list[np.ndarray]:
+        torch = self.torch
+        with torch.no_grad():
+            outputs = self.modules[name](*(torch.from_numpy(np.asarray(x)) for x in inputs))
+        if isinstance(outputs, torch.Tensor):
+            outputs = (outputs,)
+        return [o.numpy() for o in outputs]
+
+    def encode(self, frames: np.ndarray) -> np.ndarray:
+        """Frames (F, 3, H, W) RGB in [0, 1] → memory (F, S, C)."""
+        return self._run("encoder", np.ascontiguousarray(frames, np.float32))[0]
+
+    def init_points(self, memory: np.ndarray, positions: np.ndarray) -> np.ndarray:
+        """Memory (S, C) of one frame, normalised positions (N, 2) → content (N, C)."""
+        return self._run("init_points", memory, positions)[0]
+
+    def decode(self, *inputs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """One window; inputs and outputs as `taptr.export.runner.Steps.decode`."""
+        positions, visibility, content = self._run("decode_window", *inputs)
+        return positions, visibility, content
+
+
+def load_steps(
+    directory: str | os.PathLike[str], *, threads: int | None = None
+) -> OnnxSteps | TorchScriptSteps:
+    """The runner for an export folder, by its manifest's format.
+
+    Args:
+        directory: the export folder.
+        threads: onnxruntime's intra-op threads (TorchScript follows torch's setting).
+    """
+    manifest = ExportManifest.load(directory)
+    if manifest.format == "onnx":
+        return OnnxSteps(directory, threads=threads)
+    return TorchScriptSteps(directory)

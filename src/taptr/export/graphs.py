@@ -1,0 +1,229 @@
+"""Exporting the per-window model step as ONNX or TorchScript graphs.
+
+`export_model(model, directory, format)` writes the three graphs of
+`taptr.export.manifest.GRAPHS` and the manifest. Graphs take batch size one; the number of
+frames F (encoder), the window length W_t and the number of points N (decoder) are
+dynamic; the frame size, and with it the token count S, is fixed to the model's input
+size.
+
+Before export the model is copied and prepared: float32 on the CPU, eval mode, the
+``grid_sample`` attention kernel (4-D ``grid_sample`` exports to ONNX GridSample;
+``embedding_bag`` with per-sample weights does not export) and the decoder's masked
+point-attention path, which has no data-dependent control flow. Neither changes results
+beyond float rounding.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import os
+import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from taptr.export.manifest import INPUT_NAMES, OUTPUT_NAMES, ExportFormat, ExportManifest
+from taptr.export.modules import FrameEncoder, PointInitializer, WindowDecoder, feature_shapes
+from taptr.model.ops import set_kernel
+from taptr.model.taptr import TAPTR
+
+ONNX_OPSET = 18
+"""The dynamo exporter's opset; GridSample needs 16 or later."""
+
+
+def prepare_for_export(model: TAPTR) -> TAPTR:
+    """A float32 CPU copy in eval mode with export-friendly kernels; ``model`` is untouched."""
+    prepared = copy.deepcopy(model).float().cpu().eval()
+    set_kernel(prepared, "grid_sample")
+    # the grouped point attention loops over frames with data-dependent sizes; the masked
+    # path computes the same kept outputs in one batched call
+    if hasattr(prepared.decoder, "grouped_attention"):
+        prepared.decoder.grouped_attention = False
+    return prepared
+
+
+def _manifest(
+    model: TAPTR, format: ExportFormat, opset: int | None, input_size: tuple[int, int] | None
+) -> ExportManifest:
+    if model.config is None:
+        raise ValueError("the model has no config; build or load it with taptr")
+    config = model.config
+    height, width = input_size or config.input_size
+    size = (int(height), int(width))
+    return ExportManifest(
+        format=format,
+        input_size=size,
+        spatial_shapes=tuple(feature_shapes(model, size)),
+        d_model=config.d_model,
+        window_size=model.window_size,
+        window_stride=model.window_stride,
+        long_video_frames=model.long_video_frames,
+        memory_efficient=model.memory_efficient,
+        version=config.version,
+        opset=opset,
+    )
+
+
+def _wrappers(model: TAPTR, manifest: ExportManifest) -> dict[str, nn.Module]:
+    shapes = [(h, w) for h, w in manifest.spatial_shapes]
+    modules: dict[str, nn.Module] = {
+        "encoder": FrameEncoder(model),
+        "init_points": PointInitializer(model, shapes),
+        "decode_window": WindowDecoder(model, shapes),
+    }
+    return {name: module.eval() for name, module in modules.items()}
+
+
+def example_inputs(manifest: ExportManifest, seed: int = 0) -> dict[str, tuple[Tensor, ...]]:
+    """Inputs to trace each graph with: 2 frames, a window of 4 frames, 3 points.
+
+    Sizes differ from each other and from one, so that no dynamic size is mistaken for a
+    constant or for another size.
+    """
+    generator = torch.Generator().manual_seed(seed)
+    length, points = 4, 3
+    tokens, channels = manifest.num_tokens, manifest.d_model
+
+    def rand(*shape: int) -> Tensor:
+        return torch.rand(*shape, generator=generator)
+
+    starts = torch.tensor([0, 1, 3])  # one point per kind: tracked early, later, at the end
+    window = torch.arange(length)[:, None]  # (W_t, 1)
+    return {
+        "encoder": (rand(2, 3, *manifest.input_size),),
+        "init_points": (rand(tokens, channels), rand(points, 2)),
+        "decode_window": (
+            rand(length, tokens, channels),
+            rand(length, points, channels),
+            torch.randn(length, points, 4, generator=generator),
+            rand(points, channels),
+            window >= starts,
+            window > starts,
+        ),
+    }
+
+
+@contextmanager
+def _quiet_exporter() -> Iterator[None]:
+    """Silences the exporters' notes, which are about their internals, not about ours.
+
+    The ONNX optimiser logs a warning per multi-output op it does not fold, the dynamo
+    exporter one per dynamic axis it renames, and TorchScript its deprecation and the
+    tracer's notes on Python values (sizes here, which stay symbolic).
+    """
+    optimizer_log = logging.getLogger("onnxscript")
+    level = optimizer_log.level
+    optimizer_log.setLevel(logging.ERROR)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            warnings.simplefilter("ignore", FutureWarning)
+            warnings.simplefilter("ignore", DeprecationWarning)
+            warnings.simplefilter("ignore", torch.jit.TracerWarning)
+            yield
+    finally:
+        optimizer_log.setLevel(level)
+
+
+def _dynamic_shapes(name: str) -> tuple[dict[int, Any] | None, ...]:
+    frames = torch.export.Dim("frames", min=1)
+    window = torch.export.Dim("window", min=1)
+    points = torch.export.Dim("points", min=1)
+    per_point = {0: window, 1: points}  # (W_t, N, ...)
+    return {
+        "encoder": ({0: frames},),
+        "init_points": (None, {0: points}),
+        "decode_window": ({0: window}, per_point, per_point, {0: points}, per_point, per_point),
+    }[name]
+
+
+def export_onnx(
+    model: TAPTR, directory: str | os.PathLike[str], input_size: tuple[int, int] | None = None
+) -> ExportManifest:
+    """Writes the three graphs as ONNX (torch.export-based exporter) and the manifest.
+
+    Args:
+        model: the network (not modified).
+        directory: output folder, created if needed.
+        input_size: (H, W) of the frames the graphs take (default: the model config's).
+    """
+    try:
+        import onnx  # noqa: F401  (the exporter needs both)
+        import onnxscript  # noqa: F401
+    except ImportError:
+        raise ModuleNotFoundError(
+            "ONNX export needs onnx and onnxscript: pip install 'taptr[export]'"
+        ) from None
+    prepared = prepare_for_export(model)
+    manifest = _manifest(prepared, "onnx", ONNX_OPSET, input_size)
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    examples = example_inputs(manifest)
+    for name, module in _wrappers(prepared, manifest).items():
+        with _quiet_exporter():
+            torch.onnx.export(
+                module,
+                examples[name],
+                str(manifest.graph_path(directory, name)),
+                input_names=list(INPUT_NAMES[name]),
+                output_names=list(OUTPUT_NAMES[name]),
+                dynamic_shapes=_dynamic_shapes(name),
+                opset_version=ONNX_OPSET,
+                dynamo=True,
+                external_data=False,
+                verbose=False,
+            )
+    manifest.save(directory)
+    return manifest
+
+
+def export_torchscript(
+    model: TAPTR, directory: str | os.PathLike[str], input_size: tuple[int, int] | None = None
+) -> ExportManifest:
+    """Writes the three graphs as traced TorchScript modules and the manifest.
+
+    Tracing records the operations run on the example inputs; the wrapped functions have
+    no data-dependent branches once prepared, so the graphs hold for any F, W_t and N
+    (checked by the tests on sizes other than the examples').
+
+    Args:
+        model: the network (not modified).
+        directory: output folder, created if needed.
+        input_size: (H, W) of the frames the graphs take (default: the model config's).
+    """
+    prepared = prepare_for_export(model)
+    manifest = _manifest(prepared, "torchscript", None, input_size)
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    examples = example_inputs(manifest)
+    for name, module in _wrappers(prepared, manifest).items():
+        with _quiet_exporter(), torch.no_grad():
+            traced = torch.jit.trace(module, examples[name], check_trace=False)
+            torch.jit.save(traced, str(manifest.graph_path(directory, name)))
+    manifest.save(directory)
+    return manifest
+
+
+def export_model(
+    model: TAPTR,
+    directory: str | os.PathLike[str],
+    format: ExportFormat,
+    input_size: tuple[int, int] | None = None,
+) -> ExportManifest:
+    """Exports ``model``'s per-window step in ``format`` (``"onnx"`` or ``"torchscript"``).
+
+    Args:
+        model: the network (not modified).
+        directory: output folder, created if needed.
+        format: ``"onnx"`` or ``"torchscript"``.
+        input_size: (H, W) of the frames the graphs take (default: the model config's).
+    """
+    exporters = {"onnx": export_onnx, "torchscript": export_torchscript}
+    if format not in exporters:
+        raise ValueError(f"unknown export format {format!r}; choose onnx or torchscript")
+    return exporters[format](model, directory, input_size)
