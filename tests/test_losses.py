@@ -54,6 +54,20 @@ def test_position_loss_sums_xy_and_divides_by_count_plus_one():
     assert position_loss(predicted, target, mask).item() == pytest.approx(0.3 / 2, rel=1e-12)
 
 
+def test_taptr_v1_divides_by_the_plain_count():
+    predicted = torch.tensor([[[[0.5, 0.5], [0.1, 0.9]]]], dtype=torch.float64)
+    target = torch.tensor([[[[0.6, 0.3], [0.1, 0.8]]]], dtype=torch.float64)
+    mask = torch.tensor([[[True, True]]])
+    assert position_loss(predicted, target, mask, count_offset=0).item() == pytest.approx(0.2)
+    empty = torch.tensor([[[False, False]]])
+    assert position_loss(predicted, target, empty, count_offset=0).item() == 0.0  # not 0/0
+    logits = torch.zeros(1, 1, 2, 3, dtype=torch.float64)
+    visible = torch.tensor([[[True, False]]])
+    v2 = focal_visibility_loss(logits, visible, mask)
+    v1 = focal_visibility_loss(logits, visible, mask, count_offset=0)
+    torch.testing.assert_close(v1, v2 * 3 / 2)
+
+
 def _output(layers: int, positions: torch.Tensor, logits: torch.Tensor, updated=None):
     logit_positions = torch.logit(positions)
     boxes = torch.cat((logit_positions, torch.zeros_like(logit_positions)), -1)

@@ -242,7 +242,11 @@ def train(config: TrainConfig, resume: str | os.PathLike[str] | None = None) -> 
         if config.data.val_root and config.eval_every:
             held_out = list_sequences(config.data.val_root)[: config.data.val_videos]
         weights = LossWeights(
-            config.visibility_weight, config.position_weight, config.supervise_updated_positions
+            config.visibility_weight,
+            config.position_weight,
+            config.supervise_updated_positions,
+            # TAPTR v1 normalises its terms by the plain counts
+            count_offset=1.0 if run.model.config is None or run.model.config.version == 2 else 0.0,
         )
         monitor = Monitor(run_dir / "tensorboard", info.is_main, config.steps, run.step)
         saved = Path(resume) if resume is not None else None

@@ -14,6 +14,9 @@ frame):
   position update, before each layer's position head (the paper's "supervise the position
   update" switch). One term per layer.
 
+TAPTR (v1) divides by the counts without the + 1 (`LossWeights.count_offset` 0); an empty
+count then gives 0 rather than the official 0/0 = NaN.
+
 Per-clip losses are averaged over the batch, so a batch of one clip gives exactly the
 official values and a data-parallel run averages like one process on the combined batch.
 """
@@ -41,6 +44,8 @@ class LossWeights:
             outputs, with weight ``position`` (Table 3 of the paper ablates this).
         focal_alpha: α of the focal loss (weight of positive targets).
         focal_gamma: γ of the focal loss.
+        count_offset: added to the entry counts that normalise each term (1 in TAPTRv2,
+            0 in TAPTR v1).
     """
 
     visibility: float = 1.0
@@ -48,6 +53,7 @@ class LossWeights:
     supervise_updated_positions: bool = True
     focal_alpha: float = 0.25
     focal_gamma: float = 2.0
+    count_offset: float = 1.0
 
 
 class Targets(NamedTuple):
@@ -89,8 +95,19 @@ def inside_image(positions: Tensor) -> Tensor:
     return ((positions >= 0) & (positions <= 1)).all(dim=-1)
 
 
+def _normaliser(mask: Tensor, offset: float, dtype: torch.dtype) -> Tensor:
+    """Per-clip count of masked entries plus ``offset``, at least 1 when the offset is 0."""
+    count = mask.sum((1, 2)).to(dtype) + offset
+    return count if offset else count.clamp(min=1)
+
+
 def focal_visibility_loss(
-    logits: Tensor, visible: Tensor, mask: Tensor, alpha: float = 0.25, gamma: float = 2.0
+    logits: Tensor,
+    visible: Tensor,
+    mask: Tensor,
+    alpha: float = 0.25,
+    gamma: float = 2.0,
+    count_offset: float = 1.0,
 ) -> Tensor:
     """Per-clip sigmoid focal loss of the three visibility logits.
 
@@ -101,9 +118,10 @@ def focal_visibility_loss(
         mask: (B, T, N) bool entries that count.
         alpha: weight of positive targets (1 − alpha for negatives).
         gamma: focusing exponent.
+        count_offset: added to the count of masked entries that divides the sum.
 
     Returns:
-        (B,) summed over channels and masked entries, divided by count + 1.
+        (B,) summed over channels and masked entries, divided by count + count_offset.
     """
     target = F.one_hot(torch.where(visible, 1, 2), 3).to(logits.dtype)
     probability = logits.sigmoid()
@@ -112,23 +130,26 @@ def focal_visibility_loss(
     weight = alpha * target + (1 - alpha) * (1 - target)
     loss = weight * cross_entropy * (1 - p_true) ** gamma  # (B, T, N, 3)
     masked = loss.sum(-1) * mask.to(loss.dtype)
-    return masked.sum((1, 2)) / (mask.sum((1, 2)).to(loss.dtype) + 1)
+    return masked.sum((1, 2)) / _normaliser(mask, count_offset, loss.dtype)
 
 
-def position_loss(predicted: Tensor, target: Tensor, mask: Tensor) -> Tensor:
-    """Per-clip L1 of (x, y), summed over masked entries and divided by count + 1.
+def position_loss(
+    predicted: Tensor, target: Tensor, mask: Tensor, count_offset: float = 1.0
+) -> Tensor:
+    """Per-clip L1 of (x, y), summed over masked entries and divided by count + offset.
 
     Args:
         predicted: (B, T, N, 2) normalised positions.
         target: (B, T, N, 2) normalised true positions.
         mask: (B, T, N) bool entries that count.
+        count_offset: added to the count of masked entries that divides the sum.
 
     Returns:
         (B,).
     """
     # torch.where keeps NaN/inf of unused entries (e.g. far outside the image) out of the sum
     error = torch.where(mask[..., None], (predicted - target).abs(), 0).sum(-1)
-    return error.sum((1, 2)) / (mask.sum((1, 2)).to(predicted.dtype) + 1)
+    return error.sum((1, 2)) / _normaliser(mask, count_offset, predicted.dtype)
 
 
 def tracking_loss(output: TrackOutput, targets: Targets, weights: LossWeights) -> LossOutput:
@@ -154,9 +175,10 @@ def tracking_loss(output: TrackOutput, targets: Targets, weights: LossWeights) -
             updates,
             weights.focal_alpha,
             weights.focal_gamma,
+            weights.count_offset,
         ).mean()
         position = position_loss(
-            output.layer_positions[layer, ..., :2].sigmoid(), gt, located
+            output.layer_positions[layer, ..., :2].sigmoid(), gt, located, weights.count_offset
         ).mean()
         terms[f"visibility_{layer}"] = visibility
         terms[f"position_{layer}"] = position
@@ -165,7 +187,10 @@ def tracking_loss(output: TrackOutput, targets: Targets, weights: LossWeights) -
             total = total + weights.visibility * visibility
         if output.layer_updated_positions is not None:
             updated = position_loss(
-                output.layer_updated_positions[layer, ..., :2].sigmoid(), gt, located
+                output.layer_updated_positions[layer, ..., :2].sigmoid(),
+                gt,
+                located,
+                weights.count_offset,
             ).mean()
             terms[f"updated_position_{layer}"] = updated
             if weights.supervise_updated_positions:
