@@ -14,9 +14,8 @@ import torch
 import taptr
 from taptr.config import tiny
 from taptr.export.graphs import _manifest, _wrappers, prepare_for_export
-from taptr.export.runner import content_padding_gap, track_points, window_ranges
+from taptr.export.runner import track_points
 from taptr.export.verify import torch_tracks
-from taptr.model import tracker
 
 
 class EagerSteps:
@@ -63,13 +62,6 @@ def tiny_random():
 def _frames(num_frames, seed=0):
     rng = np.random.default_rng(seed)
     return rng.random((num_frames, 3, 64, 64), dtype=np.float32)
-
-
-@pytest.mark.parametrize("size,stride", [(8, 4), (8, 8), (5, 2), (3, 1), (8, 7)])
-def test_window_rules_match_the_driver(size, stride):
-    for frames in range(1, 60):
-        assert window_ranges(frames, size, stride) == tracker.window_ranges(frames, size, stride)
-        assert content_padding_gap(frames, 24) == tracker.content_padding_gap(frames, 24, False)
 
 
 @pytest.mark.parametrize(

@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from taptr.model.tracker import content_padding_gap, window_ranges
 from taptr.model.trajectory import Trajectory
+from taptr.windows import content_padding_gap, window_ranges
 
 
 @pytest.mark.parametrize(
@@ -73,3 +73,12 @@ def test_trajectory_write_pad_and_release():
         trajectory.read(2, 4)
     trajectory.fill(torch.tensor([[False, True]]), torch.full((1, 2, 1), 7.0))
     assert trajectory.read(3, 12)[0, :, 1, 0].tolist() == [7.0] * 10
+
+
+@pytest.mark.parametrize(("size", "stride"), [(8, 4), (8, 8), (5, 2), (3, 1), (8, 7)])
+def test_windows_cover_every_frame_for_other_sizes(size, stride):
+    for frames in range(1, 60):
+        ranges = window_ranges(frames, size, stride)
+        assert set().union(*(range(a, b + 1) for a, b in ranges)) == set(range(frames))
+        assert all(b - a + 1 == min(size, frames) for a, b in ranges)
+        assert ranges[-1][1] == frames - 1

@@ -35,8 +35,8 @@ from taptr.model.tracker import (
     decode_window,
     keep_points,
     start_state,
-    window_ranges,
 )
+from taptr.windows import window_ranges
 
 
 @dataclass

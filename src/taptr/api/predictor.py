@@ -27,8 +27,9 @@ from taptr.api.inputs import as_unit_float, grid_queries, query_tensor, video_te
 from taptr.geometry import normalized_to_pixels, pixels_to_normalized
 from taptr.model.frames import EncodedFrames
 from taptr.model.taptr import TAPTR, normalize_frames
-from taptr.model.tracker import QuerySet, run_windows, window_ranges
+from taptr.model.tracker import QuerySet, run_windows
 from taptr.types import TrackingResult
+from taptr.windows import window_ranges
 
 logger = logging.getLogger(__name__)
 

@@ -26,6 +26,7 @@ from typing import NamedTuple, Protocol
 import numpy as np
 
 from taptr.export.manifest import ExportManifest
+from taptr.windows import content_padding_gap, window_ranges
 
 INVERSE_SIGMOID_EPS = 1e-3
 """The official clamp of the inverse sigmoid (as `taptr.geometry.inverse_sigmoid`)."""
@@ -65,24 +66,6 @@ class TrackArrays(NamedTuple):
 
     positions: np.ndarray
     visibility_logits: np.ndarray
-
-
-def window_ranges(num_frames: int, size: int, stride: int) -> list[tuple[int, int]]:
-    """First and last frame (inclusive) of every window (`taptr.model.tracker`'s rule)."""
-    if num_frames < 1:
-        raise ValueError(f"need at least one frame, got {num_frames}")
-    if num_frames <= size:
-        return [(0, num_frames - 1)]
-    count = (num_frames - size) // stride + 1
-    if size + stride * (count - 1) < num_frames:
-        count += 1
-    firsts = [min(k * stride, num_frames - size) for k in range(count)]
-    return [(first, first + size - 1) for first in firsts]
-
-
-def content_padding_gap(num_frames: int, long_video_frames: int) -> int:
-    """Content is copied to later frames after window k iff k % gap == 0 (inference)."""
-    return 1 if num_frames <= long_video_frames else num_frames // long_video_frames
 
 
 def inverse_sigmoid(x: np.ndarray) -> np.ndarray:
@@ -245,7 +228,7 @@ def decode_window(
     state.positions.pad_from(last)
     state.visibility.pad_from(last)
     state.content.write(first, handed_over, np.ones_like(update))
-    if index % content_padding_gap(num_frames, manifest.long_video_frames) == 0:
+    if index % content_padding_gap(num_frames, manifest.long_video_frames, training=False) == 0:
         state.content.pad_from(last)
 
 
