@@ -22,3 +22,20 @@ def test_bench_command_on_a_tiny_case(tmp_path, capsys):
     assert set(fast["stage_seconds"]) == {"backbone", "input_projections", "encoder", "decoder"}
     assert case["agreement"]["max_position_difference"] < 1e-4
     assert case["agreement"]["visibility_decisions_equal"]
+
+
+def test_benchmark_suite_lists_every_case_and_runs_the_smoke_case(tmp_path, capsys):
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "suite.py"
+    spec = importlib.util.spec_from_file_location("benchmark_suite", path)
+    suite = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(suite)
+    assert suite.main([*suite.CASES, "--dry-run", "--out", str(tmp_path)]) == 0
+    listed = [line for line in capsys.readouterr().out.splitlines() if line.startswith("$ ")]
+    assert len(listed) == sum(len(runs) for runs in suite.CASES.values())
+    assert all("taptr bench" in line and str(tmp_path) in line for line in listed)
+    assert suite.main(["smoke", "--out", str(tmp_path)]) == 0
+    (case,) = json.loads((tmp_path / "smoke.json").read_text())["cases"]
+    assert case["agreement"]["visibility_decisions_equal"]

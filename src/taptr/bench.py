@@ -118,7 +118,10 @@ def _inputs(config: BenchConfig) -> tuple[torch.Tensor, Any]:
     from taptr.model.tracker import QuerySet
 
     generator = torch.Generator().manual_seed(config.seed)
-    video = torch.randn(1, config.frames, 3, *config.size, generator=generator)
+    # uint8 frames, as a decoded video: holding 300 frames as float32 would be most of the
+    # fast path's memory
+    shape = (1, config.frames, 3, *config.size)
+    video = torch.randint(0, 256, shape, generator=generator, dtype=torch.uint8)
     queries = QuerySet(
         torch.zeros(1, config.points, dtype=torch.long),
         torch.rand(1, config.points, 2, generator=generator) * 0.9 + 0.05,
@@ -129,16 +132,22 @@ def _inputs(config: BenchConfig) -> tuple[torch.Tensor, Any]:
 
 def _track(model: nn.Module, config: BenchConfig, video: torch.Tensor, queries: Any) -> Any:
     from taptr.model.frames import EncodedFrames, PrecomputedFrames
+    from taptr.model.taptr import normalize_frames
     from taptr.model.tracker import QuerySet, run_windows
 
     device = torch.device(config.device)
     video = video.to(device)
     queries = QuerySet(*(q.to(device) for q in queries))
+
+    def load(first: int, last: int) -> torch.Tensor:
+        return normalize_frames(video[:, first : last + 1].float() / 255)
+
     if config.path == "faithful":
-        frames = PrecomputedFrames(model.encode(video, chunk_size=24))
+        # the official code's way: the whole video in float, every frame encoded up front
+        frames = PrecomputedFrames(model.encode(load(0, config.frames - 1), chunk_size=24))
     else:
-        frames = EncodedFrames(model, video)
-    return run_windows(model, queries, config.frames, frames, video.dtype)
+        frames = EncodedFrames(model, load)
+    return run_windows(model, queries, config.frames, frames, torch.float32)
 
 
 def run_case(config: BenchConfig, positions_out: str | None = None) -> BenchResult:

@@ -14,6 +14,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from taptr.model.ops import deform_attn, key_aware_attn
+from taptr.model.ops.gather import interleaved_sizes
 
 
 class DeformableOutput(NamedTuple):
@@ -53,8 +54,10 @@ def sampling_locations(
     Returns:
         (B, Q, M, L, P, 2).
     """
-    sizes = offsets.new_tensor([[w, h] for h, w in spatial_shapes])  # (L, 2) as (W_l, H_l)
-    return reference[:, :, None, None, None, :] + offsets / sizes[None, None, None, :, None, :]
+    levels, points = offsets.shape[3:5]
+    sizes = interleaved_sizes(spatial_shapes, points, offsets)  # (L·P·2) as (W_l, H_l) pairs
+    start = reference.repeat(1, 1, levels * points).unsqueeze(2)  # (B, Q, 1, L·P·2)
+    return (offsets.flatten(3) / sizes + start).view(offsets.shape)
 
 
 class DeformableAttention(nn.Module):

@@ -2,7 +2,8 @@
 
 The faithful path is the straightforward formulation (``grid_sample`` deformable attention,
 explicit N × N attention masks); the fast path gathers samples with ``embedding_bag`` and
-runs point attention on the tracked points of each frame only. Benchmarks use the faithful
+runs point attention on the tracked points of each frame only, and its MLPs (the encoder's
+FFN above all) take their rows in cache-sized blocks at inference. Benchmarks use the faithful
 path as their baseline; everything else runs the fast path, the default.
 """
 
@@ -11,6 +12,7 @@ from __future__ import annotations
 from torch import nn
 
 from taptr.model.decoder import Decoder
+from taptr.model.layers import MLP, ROW_BLOCK
 from taptr.model.ops import set_kernel
 
 PATHS = ("faithful", "fast")
@@ -25,4 +27,6 @@ def use_path(model: nn.Module, name: str) -> nn.Module:
     for module in model.modules():
         if isinstance(module, Decoder):
             module.grouped_attention = not faithful
+        if isinstance(module, MLP):
+            module.row_block = None if faithful else ROW_BLOCK
     return model

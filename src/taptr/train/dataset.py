@@ -35,6 +35,10 @@ from taptr.types import TrackingSample
 MAX_ATTEMPTS = 20
 
 
+OFFICIAL_FRAME_SIZE = 512
+"""Frame side the official augmentation sizes are given for."""
+
+
 def make_clip(
     sample: TrackingSample, data: DataConfig, size: tuple[int, int], rng: np.random.Generator
 ) -> TrainingClip | None:
@@ -54,12 +58,20 @@ def make_clip(
     picked = sample_points(crop_frames(sample, data.clip_frames, rng), data.num_points, rng)
     if picked is None:
         return None
-    clip = augment.erase(picked, rng, data.eraser_prob)
-    clip = augment.replace(clip, rng, data.replace_prob)
+    # the official pixel sizes (occluders up to 100 px, pads up to 25 px, crop drift up to
+    # 15 px per frame) are meant for 512-pixel frames: keep them relative to the frame
+    scale = min(picked.video.shape[1:3]) / OFFICIAL_FRAME_SIZE
+    occluders = (2, max(3, round(100 * scale)))
+    clip = augment.erase(picked, rng, data.eraser_prob, size_bounds=occluders)
+    clip = augment.replace(clip, rng, data.replace_prob, size_bounds=occluders)
     clip = augment.jitter_colour(clip, rng, data.colour_prob)
     clip = augment.blur(clip, rng, data.blur_prob)
     clip = augment.mark_outside(clip)
-    clip = pan_and_crop(clip, rng, size) if data.camera_panning else resize(clip, size)
+    if data.camera_panning:
+        pads = (0, max(1, round(25 * scale)))
+        clip = pan_and_crop(clip, rng, size, pad_bounds=pads, max_offset=max(1, round(15 * scale)))
+    else:
+        clip = resize(clip, size)
     clip = random_flip(clip, rng, data.hflip_prob, data.vflip_prob)
     starts = first_visible_frames(clip.visible)
     visible, starts = restart_trajectories(clip.visible, starts, data.restart_fraction, rng)

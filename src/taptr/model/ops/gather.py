@@ -83,6 +83,17 @@ def projected_table(
     return table.view(-1, channels // heads)
 
 
+def interleaved_sizes(spatial_shapes: list[tuple[int, int]], points: int, like: Tensor) -> Tensor:
+    """(W_l, H_l) of every level, repeated for its points: (L · P · 2) as x, y pairs.
+
+    Elementwise ops between (..., L · P · 2) rows and this vector run along one contiguous
+    axis, where broadcasting a (L, 1, 2) size over (..., L, P, 2) runs an inner loop of two.
+    """
+    sizes = like.new_tensor([[w, h] for h, w in spatial_shapes])  # (L, 2)
+    levels = len(spatial_shapes)
+    return sizes.view(levels, 1, 2).expand(levels, points, 2).reshape(-1)
+
+
 def bilinear_corners(
     locations: Tensor, spatial_shapes: list[tuple[int, int]], scale: Tensor | None = None
 ) -> tuple[Tensor, Tensor]:
@@ -98,21 +109,20 @@ def bilinear_corners(
         ordered (y0 x0, y0 x1, y1 x0, y1 x1).
     """
     batch, queries, heads, levels, points, _ = locations.shape
-    device, dtype = locations.device, locations.dtype
-    sizes = torch.tensor(spatial_shapes, device=device, dtype=dtype).view(levels, 1, 2).flip(-1)
+    device = locations.device
     padded = [(h + 3) * (w + 3) for h, w in spatial_shapes]
     # int32 rows halve the traffic of the index arithmetic while the table fits
     index = torch.int32 if batch * sum(padded) * heads < 2**31 else torch.int64
-    starts = torch.tensor([sum(padded[:i]) for i in range(levels)], device=device, dtype=index)
-    starts = starts.view(levels, 1)
-    row_length = torch.tensor([w + 3 for _, w in spatial_shapes], device=device, dtype=index)
-    row_length = row_length.view(levels, 1)
-    pixels = locations * sizes - 0.5  # (B, Q, M, L, P, 2) as (x, y) in each level's pixels
+    sizes = interleaved_sizes(spatial_shapes, points, locations)  # (L·P·2)
+    pixels = locations.flatten(3) * sizes - 0.5  # (B, Q, M, L·P·2) in each level's pixels
     # beyond one cell outside, every corner is in the zero border: clamp onto it
-    pixels = torch.maximum(torch.minimum(pixels, sizes), pixels.new_tensor(-1.0))
+    pixels = torch.minimum(pixels, sizes).clamp_(min=-1.0)
     corner = pixels.floor()
-    frac = pixels - corner
-    cell = (corner + 1).to(index)  # padded coordinates of the top-left corner
+    frac = (pixels - corner).view(locations.shape)
+    cell = corner.to(index).add_(1).view(locations.shape)  # padded coordinates of top-left
+    starts = torch.tensor([sum(padded[:i]) for i in range(levels)], device=device, dtype=index)
+    row_length = torch.tensor([w + 3 for _, w in spatial_shapes], device=device, dtype=index)
+    starts, row_length = starts.view(levels, 1), row_length.view(levels, 1)
     # table row of (image b, token s, head m) is (b·S_pad + s)·M + m
     image_head = torch.arange(batch, device=device, dtype=index).view(batch, 1, 1, 1, 1)
     image_head = image_head * (sum(padded) * heads)
@@ -120,15 +130,24 @@ def bilinear_corners(
         1, 1, heads, 1, 1
     )
     top_left = image_head + (starts + cell[..., 1] * row_length + cell[..., 0]) * heads
-    steps = torch.stack(
-        (torch.zeros_like(row_length), torch.ones_like(row_length), row_length, row_length + 1), -1
-    )
-    rows = top_left.unsqueeze(-1) + steps * heads  # (B, Q, M, L, P, 4)
-    wx = torch.stack((1 - frac[..., 0], frac[..., 0]), -1)  # (B, Q, M, L, P, 2)
-    wy = torch.stack((1 - frac[..., 1], frac[..., 1]), -1)
+    # corners are written into strided slices: stacking them costs several times more
+    rows = top_left.new_empty(*top_left.shape, 4)  # (B, Q, M, L, P, 4)
+    rows[..., 0] = top_left
+    torch.add(top_left, heads, out=rows[..., 1])
+    torch.add(top_left, row_length * heads, out=rows[..., 2])
+    torch.add(rows[..., 2], heads, out=rows[..., 3])
+    fx, fy = frac[..., 0], frac[..., 1]
+    gx, gy = 1 - fx, 1 - fy
     if scale is not None:
-        wy = wy * scale.unsqueeze(-1)
-    weights = (wy.unsqueeze(-1) * wx.unsqueeze(-2)).flatten(-2)  # (B, Q, M, L, P, 4)
+        fy, gy = fy * scale, gy * scale
+    if torch.is_grad_enabled() and (fx.requires_grad or fy.requires_grad):
+        weights = torch.stack((gy * gx, gy * fx, fy * gx, fy * fx), -1)  # out= has no autograd
+    else:
+        weights = fx.new_empty(*fx.shape, 4)
+        torch.mul(gy, gx, out=weights[..., 0])
+        torch.mul(gy, fx, out=weights[..., 1])
+        torch.mul(fy, gx, out=weights[..., 2])
+        torch.mul(fy, fx, out=weights[..., 3])
     shape = (batch, queries, heads, levels * points, 4)
     return rows.view(shape), weights.view(shape)
 
