@@ -174,13 +174,17 @@ def run_case(config: BenchConfig, positions_out: str | None = None) -> BenchResu
         np.save(
             positions_out + ".logits.npy", output.visibility_logits[0, ..., 1].float().cpu().numpy()
         )
+    # read before counting FLOPs: the counter runs attention unfused, at a far higher peak
+    peak_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    cuda = config.device.startswith("cuda")
+    peak_cuda = torch.cuda.max_memory_allocated() if cuda else None
     flops = _count_flops(model, config, video, queries) if config.flops else None
     return BenchResult(
         config=asdict(config),
         seconds_per_frame=elapsed / config.frames,
         stage_seconds=dict(stages),
-        peak_rss=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
-        peak_cuda=torch.cuda.max_memory_allocated() if config.device.startswith("cuda") else None,
+        peak_rss=peak_rss,
+        peak_cuda=peak_cuda,
         parameters=sum(p.numel() for p in model.parameters()),
         flops=flops,
     )

@@ -160,12 +160,11 @@ def taptrv2() -> TrainConfig:
 
 
 def small() -> TrainConfig:
-    """The bundled CPU model on synthetic videos (`taptr make-synthetic`), ~75 min on a core.
+    """The bundled CPU model on synthetic videos (`taptr make-synthetic`), ~100 min on a core.
 
     16-frame clips of 128 points at 128×128, one clip per step, no accumulation; the
     backbone trains from scratch at the full learning rate.
     """
-    steps = 1700
     return TrainConfig(
         model=model_presets.get_config("small"),
         data=DataConfig(
@@ -180,11 +179,11 @@ def small() -> TrainConfig:
             num_workers=1,
         ),
         out_dir="runs/small",
-        steps=steps,
+        steps=2400,
         grad_accum=1,
         lr=5e-4,
         lr_backbone=5e-4,
-        lr_milestones=(int(steps * 0.8),),
+        lr_milestones=(2000,),
         ema_decay=0.995,
         log_every=20,
         eval_every=250,
