@@ -206,11 +206,26 @@ def members(module: Any) -> list[tuple[str, Any]]:
     ]
 
 
+def own_attributes(cls: type) -> dict[str, object]:
+    """The class's attributes, plus those it inherits from private taptr bases.
+
+    A private base is an implementation detail shared by public classes: its public
+    methods are documented on each public class.
+    """
+    attributes: dict[str, object] = {}
+    for owner in cls.__mro__:
+        private_base = owner.__name__.startswith("_") and owner.__module__.startswith("taptr")
+        if owner is cls or private_base:
+            for attr, value in vars(owner).items():
+                attributes.setdefault(attr, value)
+    return attributes
+
+
 def render_class(name: str, cls: type) -> list[str]:
     """A class: constructor signature, docstring, then public methods and properties."""
     out = [f"### class `{name}`", "", "```python", signature(name, cls), "```", ""]
     out += render_docstring(cls.__doc__)
-    for attr, value in vars(cls).items():
+    for attr, value in own_attributes(cls).items():
         if attr.startswith("_"):
             continue
         if isinstance(value, property):

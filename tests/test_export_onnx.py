@@ -17,6 +17,7 @@ from taptr.export.graphs import _wrappers, export_model, prepare_for_export
 from taptr.export.manifest import GRAPHS, ExportManifest
 from taptr.export.runner import track_points
 from taptr.export.verify import sample_frames, torch_tracks
+from tests.helpers import decode_window_inputs
 from tests.test_export_runner import randomised
 
 pytest.importorskip("onnxruntime")
@@ -64,15 +65,7 @@ def check_sizes(model, exported, frames, window, points):
     memory = torch.rand(window, manifest.num_tokens, 32, generator=generator)
     positions = torch.rand(points, 2, generator=generator)
     starts = torch.arange(points) % (window + 1)  # some points start after the window
-    offsets = torch.arange(window)[:, None]
-    decode_inputs = (
-        memory,
-        torch.randn(window, points, 32, generator=generator),
-        torch.randn(window, points, 4, generator=generator),
-        torch.randn(points, 32, generator=generator),
-        offsets >= starts,
-        offsets > starts,
-    )
+    decode_inputs = decode_window_inputs(memory, points, starts, generator)
     with torch.no_grad():
         expected = [
             [eager["encoder"](video)],

@@ -16,6 +16,7 @@ from taptr.config import tiny
 from taptr.export.graphs import _manifest, _wrappers, prepare_for_export
 from taptr.export.runner import track_points
 from taptr.export.verify import torch_tracks
+from tests.helpers import tiny_v1
 
 
 class EagerSteps:
@@ -113,14 +114,7 @@ def test_frames_from_a_loader(tiny_random):
 
 
 def test_v1_memory_efficient_mode():
-    config = tiny().replace(
-        version=1,
-        cross_attention="standard",
-        position_update=False,
-        disentangler=False,
-        cost_volume=True,
-        memory_efficient=True,
-    )
+    config = tiny_v1(memory_efficient=True)
     model = randomised(config)
     frames = _frames(14)
     starts = np.array([0, 4, 10, 13], np.int64)  # two of them start after frame 7

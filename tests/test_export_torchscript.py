@@ -17,6 +17,7 @@ from taptr.export.manifest import GRAPHS, ExportManifest
 from taptr.export.runner import track_points
 from taptr.export.verify import sample_frames, torch_tracks
 from taptr.export.video import track_video
+from tests.helpers import decode_window_inputs
 from tests.test_export_runner import randomised
 
 
@@ -50,16 +51,7 @@ def test_traced_graphs_are_not_tied_to_the_example_sizes(model, exported):
     generator = torch.Generator().manual_seed(0)
     window, points = 7, 9
     memory = torch.rand(window, steps.manifest.num_tokens, 32, generator=generator)
-    starts = torch.arange(points) % 8
-    offsets = torch.arange(window)[:, None]
-    inputs = (
-        memory,
-        torch.randn(window, points, 32, generator=generator),
-        torch.randn(window, points, 4, generator=generator),
-        torch.randn(points, 32, generator=generator),
-        offsets >= starts,
-        offsets > starts,
-    )
+    inputs = decode_window_inputs(memory, points, torch.arange(points) % 8, generator)
     with torch.no_grad():
         expected = eager["decode_window"](*inputs)
         video = torch.rand(3, 3, 64, 64, generator=generator)

@@ -13,7 +13,7 @@ from taptr.config import taptrv1, tiny
 from taptr.convert.official import convert_state_dict
 from taptr.model.cost_volume import CostVolume
 from taptr.model.taptr import normalize_frames
-from tests.helpers import FIXTURES, load_golden
+from tests.helpers import FIXTURES, load_golden, tiny_v1
 
 
 def test_paper_v1_counts_41_068_522_parameters():
@@ -101,17 +101,6 @@ def test_cost_volume_correlation_is_a_scaled_dot_product(generator):
     torch.testing.assert_close(maps, expected.view(2, 5, 2, 3))
 
 
-def _tiny_v1(**changes):
-    config = tiny().replace(
-        version=1,
-        cross_attention="standard",
-        position_update=False,
-        disentangler=False,
-        cost_volume=True,
-    )
-    return config.replace(**changes)
-
-
 def _run(config, video, starts, xy):
     torch.manual_seed(0)
     model = taptr.build_model(config).eval()
@@ -128,8 +117,8 @@ def _run(config, video, starts, xy):
 def test_table1_switches_change_outputs(generator, switch):
     video = torch.randn(1, 12, 3, 64, 64, generator=generator)
     starts, xy = torch.tensor([0, 2, 5]), torch.rand(3, 2, generator=generator)
-    full_model, full = _run(_tiny_v1(), video, starts, xy)
-    ablated_model, ablated = _run(_tiny_v1(**switch), video, starts, xy)
+    full_model, full = _run(tiny_v1(), video, starts, xy)
+    ablated_model, ablated = _run(tiny_v1(**switch), video, starts, xy)
     assert not torch.allclose(full, ablated, atol=1e-4)
     assert sum(p.numel() for p in ablated_model.parameters()) < sum(
         p.numel() for p in full_model.parameters()
@@ -140,12 +129,12 @@ def test_memory_efficient_mode(generator):
     video = torch.randn(1, 16, 3, 64, 64, generator=generator)
     xy = torch.rand(3, 2, generator=generator)
     early = torch.tensor([0, 3, 7])
-    _, normal = _run(_tiny_v1(), video, early, xy)
-    _, efficient = _run(_tiny_v1(memory_efficient=True), video, early, xy)
+    _, normal = _run(tiny_v1(), video, early, xy)
+    _, efficient = _run(tiny_v1(memory_efficient=True), video, early, xy)
     torch.testing.assert_close(normal, efficient)  # every point starts before frame 8
     late = torch.tensor([0, 3, 11])
-    _, normal = _run(_tiny_v1(), video, late, xy)
-    _, efficient = _run(_tiny_v1(memory_efficient=True), video, late, xy)
+    _, normal = _run(tiny_v1(), video, late, xy)
+    _, efficient = _run(tiny_v1(memory_efficient=True), video, late, xy)
     assert not torch.allclose(normal, efficient, atol=1e-4)
 
 

@@ -15,7 +15,36 @@ import numpy as np
 from taptr.export.manifest import GRAPHS, INPUT_NAMES, ExportManifest
 
 
-class OnnxSteps:
+class _GraphSteps:
+    """`taptr.export.runner.Steps` over three named graphs; subclasses say how one runs."""
+
+    format: str
+
+    def _load_manifest(self, directory: str | os.PathLike[str]) -> ExportManifest:
+        manifest = ExportManifest.load(directory)
+        if manifest.format != self.format:
+            raise ValueError(f"{directory} holds a {manifest.format} export, not {self.format}")
+        return manifest
+
+    def _run(self, name: str, *inputs: np.ndarray) -> list[Any]:
+        """Runs graph ``name`` on numpy inputs; its outputs as numpy arrays."""
+        raise NotImplementedError
+
+    def encode(self, frames: np.ndarray) -> np.ndarray:
+        """Frames (F, 3, H, W) RGB in [0, 1] → memory (F, S, C)."""
+        return self._run("encoder", np.ascontiguousarray(frames, np.float32))[0]
+
+    def init_points(self, memory: np.ndarray, positions: np.ndarray) -> np.ndarray:
+        """Memory (S, C) of one frame, normalised positions (N, 2) → content (N, C)."""
+        return self._run("init_points", memory, positions)[0]
+
+    def decode(self, *inputs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """One window; inputs and outputs as `taptr.export.runner.Steps.decode`."""
+        positions, visibility, content = self._run("decode_window", *inputs)
+        return positions, visibility, content
+
+
+class OnnxSteps(_GraphSteps):
     """The graphs of an ONNX export, run by onnxruntime.
 
     Args:
@@ -23,6 +52,8 @@ class OnnxSteps:
         threads: intra-op threads per session (default: onnxruntime's, one per core).
         providers: onnxruntime execution providers (default: the CPU provider).
     """
+
+    format = "onnx"
 
     def __init__(
         self,
@@ -37,9 +68,7 @@ class OnnxSteps:
             raise ModuleNotFoundError(
                 "running ONNX graphs needs onnxruntime: pip install 'taptr[export]'"
             ) from None
-        self.manifest = ExportManifest.load(directory)
-        if self.manifest.format != "onnx":
-            raise ValueError(f"{directory} holds a {self.manifest.format} export, not onnx")
+        self.manifest = self._load_manifest(directory)
         options = onnxruntime.SessionOptions()
         if threads is not None:
             options.intra_op_num_threads = threads
@@ -57,34 +86,21 @@ class OnnxSteps:
         feed = dict(zip(INPUT_NAMES[name], inputs, strict=True))
         return self.sessions[name].run(None, feed)
 
-    def encode(self, frames: np.ndarray) -> np.ndarray:
-        """Frames (F, 3, H, W) RGB in [0, 1] → memory (F, S, C)."""
-        return self._run("encoder", np.ascontiguousarray(frames, np.float32))[0]
 
-    def init_points(self, memory: np.ndarray, positions: np.ndarray) -> np.ndarray:
-        """Memory (S, C) of one frame, normalised positions (N, 2) → content (N, C)."""
-        return self._run("init_points", memory, positions)[0]
-
-    def decode(self, *inputs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """One window; inputs and outputs as `taptr.export.runner.Steps.decode`."""
-        positions, visibility, content = self._run("decode_window", *inputs)
-        return positions, visibility, content
-
-
-class TorchScriptSteps:
+class TorchScriptSteps(_GraphSteps):
     """The graphs of a TorchScript export, run by ``torch.jit`` on the CPU.
 
     Args:
         directory: the export folder.
     """
 
+    format = "torchscript"
+
     def __init__(self, directory: str | os.PathLike[str]) -> None:
         import torch
 
         self.torch = torch
-        self.manifest = ExportManifest.load(directory)
-        if self.manifest.format != "torchscript":
-            raise ValueError(f"{directory} holds a {self.manifest.format} export, not torchscript")
+        self.manifest = self._load_manifest(directory)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", FutureWarning)  # TorchScript is deprecated upstream
             self.modules = {
@@ -101,19 +117,6 @@ class TorchScriptSteps:
         if isinstance(outputs, torch.Tensor):
             outputs = (outputs,)
         return [o.numpy() for o in outputs]
-
-    def encode(self, frames: np.ndarray) -> np.ndarray:
-        """Frames (F, 3, H, W) RGB in [0, 1] → memory (F, S, C)."""
-        return self._run("encoder", np.ascontiguousarray(frames, np.float32))[0]
-
-    def init_points(self, memory: np.ndarray, positions: np.ndarray) -> np.ndarray:
-        """Memory (S, C) of one frame, normalised positions (N, 2) → content (N, C)."""
-        return self._run("init_points", memory, positions)[0]
-
-    def decode(self, *inputs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """One window; inputs and outputs as `taptr.export.runner.Steps.decode`."""
-        positions, visibility, content = self._run("decode_window", *inputs)
-        return positions, visibility, content
 
 
 def load_steps(

@@ -54,12 +54,8 @@ class FrameEncoder(nn.Module):
         return self.model.encode_images(normalize_frames(frames)).memory  # (F, S, C)
 
 
-class PointInitializer(nn.Module):
-    """Initial content of points from the memory of one frame.
-
-    Shape:
-        memory (S, C) of one frame, positions (N, 2) → content (N, C).
-    """
+class _OnMemory(nn.Module):
+    """A wrapped piece that reads the flattened memory, so needs the levels' sizes."""
 
     def __init__(self, model: TAPTR, spatial_shapes: list[tuple[int, int]]) -> None:
         """Wraps ``model``.
@@ -71,6 +67,14 @@ class PointInitializer(nn.Module):
         super().__init__()
         self.model = model
         self.spatial_shapes = [(int(h), int(w)) for h, w in spatial_shapes]
+
+
+class PointInitializer(_OnMemory):
+    """Initial content of points from the memory of one frame.
+
+    Shape:
+        memory (S, C) of one frame, positions (N, 2) → content (N, C).
+    """
 
     def forward(self, memory: Tensor, positions: Tensor) -> Tensor:
         """Samples every level at the points and projects the samples.
@@ -83,7 +87,7 @@ class PointInitializer(nn.Module):
         return content[0]  # (N, C)
 
 
-class WindowDecoder(nn.Module):
+class WindowDecoder(_OnMemory):
     """One window of the decoder with its carried per-point state.
 
     Shape:
@@ -91,17 +95,6 @@ class WindowDecoder(nn.Module):
         tracking (W_t, N), update (W_t, N) → positions (W_t, N, 4), visibility logits
         (W_t, N, 3), next content (W_t, N, C).
     """
-
-    def __init__(self, model: TAPTR, spatial_shapes: list[tuple[int, int]]) -> None:
-        """Wraps ``model``.
-
-        Args:
-            model: the network.
-            spatial_shapes: (H_l, W_l) of the memory levels (see `feature_shapes`).
-        """
-        super().__init__()
-        self.model = model
-        self.spatial_shapes = [(int(h), int(w)) for h, w in spatial_shapes]
 
     def forward(
         self,
