@@ -20,6 +20,19 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--size", type=int, nargs=2, default=(256, 256), metavar=("H", "W"))
     parser.add_argument("--frames", type=int, default=24, help="frames per video")
     parser.add_argument("--points", type=int, default=1024, help="tracks per video")
+    parser.add_argument(
+        "--textures",
+        metavar="DIR|builtin",
+        help="texture layers with real photographs: a folder of images, or 'builtin' for the "
+        "training split of taptr's built-in set (needs pip install 'taptr[photos]'; see "
+        "taptr.data.photos). Tracks and occlusions stay exact",
+    )
+    parser.add_argument(
+        "--photo-prob",
+        type=float,
+        default=0.8,
+        help="with --textures: probability that a layer is a photograph (default: 0.8)",
+    )
     parser.set_defaults(func=run)
 
 
@@ -31,10 +44,26 @@ def run(args: argparse.Namespace) -> int:
 
     if args.videos < 1:
         raise ValueError("--videos must be at least 1")
+    if not 0 <= args.photo_prob <= 1:
+        raise ValueError("--photo-prob must be between 0 and 1")
+    photos = None
+    if args.textures:
+        from taptr.data.photos import load_textures
+
+        photos = load_textures(args.textures)
     config = SyntheticConfig(
         height=args.size[0], width=args.size[1], num_frames=args.frames, num_points=args.points
     )
     for index in tqdm(range(args.videos), desc="videos", disable=args.videos < 20):
-        write_dataset(args.out, 1, config, seed=args.seed, first=index)
-    print(f"wrote {args.videos} videos to {args.out}")
+        write_dataset(
+            args.out,
+            1,
+            config,
+            seed=args.seed,
+            first=index,
+            photos=photos,
+            photo_prob=args.photo_prob,
+        )
+    textured = f" textured with {len(photos)} photographs" if photos else ""
+    print(f"wrote {args.videos} videos{textured} to {args.out}")
     return 0

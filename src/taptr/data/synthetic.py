@@ -14,11 +14,17 @@ the middle one), on whatever layer is visible there, then followed through the w
 Everything is drawn from one numpy generator, so a seed gives the same video everywhere.
 `write_dataset` stores videos in the Kubric layout (`taptr.data.kubric`), so the same
 reader loads them.
+
+Given photographs (``photos``, see `taptr.data.photos`), each layer is a random crop of one
+with probability ``photo_prob`` instead of procedural noise. Only the layers' colours change:
+the warps, masks, occlusions and tracks are drawn exactly as without photographs. Without
+photographs no extra random number is drawn, so earlier seeds give the same videos.
 """
 
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -26,6 +32,7 @@ import cv2
 import numpy as np
 
 from taptr.data.kubric import write_sequence
+from taptr.data.photos import photo_texture
 from taptr.types import TrackingSample
 
 
@@ -164,26 +171,50 @@ def _sample_points(
     return layers, local
 
 
-def make_video(rng: np.random.Generator, config: SyntheticConfig) -> TrackingSample:
+def _layer_texture(
+    rng: np.random.Generator,
+    size: int,
+    photos: Sequence[np.ndarray] | None,
+    photo_prob: float,
+    crop: tuple[float, float],
+) -> np.ndarray:
+    """A (size, size, 3) uint8 texture: a photograph crop with probability ``photo_prob``."""
+    # no draw at all without photographs: the procedural videos of a seed stay the same
+    if photos and rng.random() < photo_prob:
+        return photo_texture(rng, photos, size, size, crop=crop)
+    return _texture(rng, size, size)
+
+
+def make_video(
+    rng: np.random.Generator,
+    config: SyntheticConfig,
+    photos: Sequence[np.ndarray] | None = None,
+    photo_prob: float = 0.8,
+) -> TrackingSample:
     """Renders one video with its tracks.
 
     Args:
         rng: the only source of randomness.
         config: sizes and speeds.
+        photos: optional photographs, each (h, w, 3) uint8 RGB, to texture the layers with.
+        photo_prob: probability that a layer is textured with a photograph (when given).
 
     Returns:
         video (T, H, W, 3) uint8 RGB, tracks (T, N, 2) float32 pixels, visible (T, N).
     """
+    if not 0 <= photo_prob <= 1:
+        raise ValueError(f"photo_prob must lie in [0, 1], got {photo_prob}")
     height, width, num_frames = config.height, config.width, config.num_frames
     # the canvas covers the frame under the largest pan, rotation and zoom of _camera_path
     reach = (config.camera_speed + config.camera_speed / 2) * num_frames
     canvas = int(1.3 * max(height, width) + 2 * reach)
-    textures = [_texture(rng, canvas, canvas)]
+    # the background crop is kept large: a small crop blown up to the canvas is a blur
+    textures = [_layer_texture(rng, canvas, photos, photo_prob, (0.6, 1.0))]
     masks = [np.ones((canvas, canvas), np.float32)]
     paths = [_camera_path(rng, config, canvas)]
     for _ in range(int(rng.integers(config.objects[0], config.objects[1] + 1))):
         size = int(min(height, width) * rng.uniform(0.2, 0.5))
-        textures.append(_texture(rng, size, size))
+        textures.append(_layer_texture(rng, size, photos, photo_prob, (0.3, 1.0)))
         masks.append(_shape_mask(rng, size))
         paths.append(_object_path(rng, config, size))
     maps = np.stack(paths)  # (layers, T, 2, 3), layer order = depth order, back to front
@@ -226,15 +257,19 @@ def write_dataset(
     config: SyntheticConfig | None = None,
     seed: int = 0,
     first: int = 0,
+    photos: Sequence[np.ndarray] | None = None,
+    photo_prob: float = 0.8,
 ) -> list[Path]:
     """Writes videos ``first .. first + num_videos − 1`` as sequences ``<out_dir>/00000`` ...
 
     Video i is drawn from ``numpy.random.default_rng((seed, i))``: the same seed gives the
     same files, and a different seed (e.g. for a held-out set) gives different videos.
+    ``photos`` and ``photo_prob`` are passed to `make_video` (the same photographs in the
+    same order give the same files).
     """
     config = config or SyntheticConfig()
     folders = []
     for index in range(first, first + num_videos):
-        sample = make_video(np.random.default_rng((seed, index)), config)
+        sample = make_video(np.random.default_rng((seed, index)), config, photos, photo_prob)
         folders.append(write_sequence(Path(out_dir) / f"{index:05d}", sample))
     return folders
