@@ -25,11 +25,20 @@ REPO = Path(__file__).resolve().parents[1]
 OUTPUT = REPO / "docs" / "API.md"
 
 SECTIONS = {
-    "Tracking": ["taptr.api.predictor", "taptr.api.online", "taptr.types", "taptr.editing"],
+    "Tracking": [
+        "taptr.api.predictor",
+        "taptr.api.online",
+        "taptr.api.streaming",
+        "taptr.api.context",
+        "taptr.api.resize",
+        "taptr.types",
+        "taptr.editing",
+    ],
     "Models and checkpoints": [
         "taptr.hub",
         "taptr.checkpoint",
         "taptr.config",
+        "taptr.limits",
         "taptr.model.build",
         "taptr.official",
     ],
@@ -42,6 +51,8 @@ SECTIONS = {
     "Data": [
         "taptr.data.sample_video",
         "taptr.data.synthetic",
+        "taptr.data.photos",
+        "taptr.data.photo_bench",
         "taptr.data.kubric",
         "taptr.data.tapvid",
         "taptr.data.check",
@@ -56,6 +67,7 @@ SECTIONS = {
         "taptr.eval.baselines",
         "taptr.eval.predictor_tracker",
         "taptr.eval.calibrate",
+        "taptr.analyze.attention",
     ],
     "Training": ["taptr.train.config", "taptr.train.loop"],
     "Export": ["taptr.export"],

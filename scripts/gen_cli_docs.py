@@ -29,7 +29,12 @@ Every command prints this text with `--help`. Positions on the command line are 
 the input video with pixel centres at integers, and queries are `t,x,y` (frame index first),
 as everywhere in taptr ([CONVENTIONS.md](CONVENTIONS.md)). Expected failures (a missing
 file, a bad argument, a mismatched checkpoint) print one line `taptr COMMAND: error: ...`
-and exit with status 2; `-v` before the command logs progress details.
+and exit with status 2, before the work starts wherever the arguments allow; running out
+of memory and internal errors print one line too and exit with status 1. `-v` before the
+command logs progress details and shows the traceback of a failure. Ctrl-C exits with
+status 130 and SIGTERM with 143; neither leaves temporary files or a half-replaced output
+folder behind. A value that starts with `-` is written `--flag=VALUE` (`--points` also
+takes it as is).
 """
 
 
@@ -55,6 +60,11 @@ def render() -> str:
         out += ["", "## `taptr`", "", "```text", parser.format_help().rstrip(), "```", ""]
         for name, command in commands.items():
             out += [f"## `taptr {name}`", "", "```text", command.format_help().rstrip(), "```", ""]
+            nested = [a for a in command._actions if isinstance(a, argparse._SubParsersAction)]
+            for sub, subparser in (dict(nested[0].choices) if nested else {}).items():
+                # commands with their own subcommands (taptr analyze attention)
+                text = subparser.format_help().rstrip()
+                out += [f"### `taptr {name} {sub}`", "", "```text", text, "```", ""]
     finally:
         if previous is None:
             del os.environ["COLUMNS"]

@@ -8,11 +8,29 @@ from pathlib import Path
 
 import pytest
 import torch
+from hypothesis import HealthCheck, settings
 
 from tests.helpers import FIXTURES
 
 if os.environ.get("PYTEST_XDIST_WORKER"):
     torch.set_num_threads(1)  # two workers on two cores: one thread each
+
+# Fuzz tests (tests/test_fuzz.py): few examples by default so the suite stays in the CI
+# budget; ``--hypothesis-profile=long`` runs >= 2,000 per test by hand.
+_SLOW_OK = [HealthCheck.too_slow, HealthCheck.data_too_large, HealthCheck.filter_too_much]
+settings.register_profile(
+    "taptr-ci", max_examples=50, deadline=None, database=None, suppress_health_check=_SLOW_OK
+)
+settings.register_profile("long", max_examples=2000, deadline=None, suppress_health_check=_SLOW_OK)
+settings.load_profile("taptr-ci")
+
+# The default model is the paper's weights from the Hugging Face cache or the network:
+# tests never touch the network and never see a developer's cache, so the default falls
+# back to the bundled model (tests of the download path set up a local fake Hub).
+os.environ["HF_HUB_OFFLINE"] = "1"
+os.environ["HF_HUB_CACHE"] = os.path.join(
+    os.environ.get("TMPDIR", "/tmp"), f"taptr-tests-hub-cache-{os.getpid()}"
+)
 
 
 @pytest.fixture

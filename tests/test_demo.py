@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import taptr
 from taptr.cli.main import main
 from taptr.demo.handlers import edit_video, new_run_folder, prune_runs, track_video
 from taptr.demo.inputs import (
@@ -255,3 +256,16 @@ def test_app_builds_with_every_element_the_page_needs(predictor, tmp_path):
     assert {"video-input", "query-frame", "points", "track", "overlay-video", "tracks-csv"} <= ids
     assert {"tracks-npz", "track-region", "edit-region", "paste-image", "edited-video"} <= ids
     assert sorted(p.name for p in tmp_path.iterdir()) == ["samples"]
+
+
+def test_page_shows_the_fallback_notice_next_to_the_model(tmp_path):
+    pytest.importorskip("gradio", reason="the demo extra is not installed")
+    from taptr.demo.app import build_app
+
+    predictor = taptr.Predictor.from_pretrained(None, device="cpu")  # offline: falls back
+    assert predictor.source == "taptr-small-synthetic" and predictor.notice
+    app = build_app(predictor, workspace=tmp_path, model_name=predictor.source)
+    texts = [getattr(block, "value", "") for block in app.blocks.values()]
+    header = next(text for text in texts if isinstance(text, str) and "Model:" in text)
+    assert "taptr-small-synthetic" in header and predictor.notice in header
+    assert "trained on synthetic videos only" in header

@@ -229,7 +229,7 @@ def test_kubric_layout(tmp_path, capsys):
     [
         (["--protocol", "official"], "official protocol evaluates the TAPTR model only"),
         (["--tracker", "lk", "--checkpoint", "x.pth"], "--checkpoint is for the taptr tracker"),
-        (["--max-videos", "0"], "max_videos must be at least 1"),
+        (["--max-videos", "0"], "--max-videos must be at least 1"),
     ],
 )
 def test_bad_combinations_are_one_line_errors(data, tmp_path, capsys, args, message):

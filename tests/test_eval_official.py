@@ -15,7 +15,7 @@ from tests.test_tapvid_fabricated import make_clip
 def test_padding_follows_the_seed0_recipe():
     real = np.array([[10.5, 20.25], [100.0, 3.0], [30.0, 240.0]])
     padding = official_padding(real, num_frames=24)
-    assert padding.positions.shape == (797, 2) and padding.occluded_prefix.shape == (797,)
+    assert padding.positions.shape == (797, 2) and padding.start_frames.shape == (797,)
     # the list starts with the real frame-0 positions, and all of it is returned
     np.testing.assert_array_equal(padding.positions[:3], real)
     drawn = padding.positions[3:]
@@ -25,7 +25,7 @@ def test_padding_follows_the_seed0_recipe():
     np.testing.assert_array_equal(drawn[0], np.random.RandomState(0).randint(16, 240, size=2))
     gaps = np.linalg.norm(padding.positions[:, None] - padding.positions[None], axis=-1)
     assert gaps[~np.eye(797, dtype=bool)].min() >= 1
-    assert padding.occluded_prefix.min() >= 0 and padding.occluded_prefix.max() < 12
+    assert padding.start_frames.min() >= 0 and padding.start_frames.max() < 12
 
 
 def test_padding_is_deterministic_and_leaves_numpy_global_state_alone():
@@ -35,7 +35,7 @@ def test_padding_is_deterministic_and_leaves_numpy_global_state_alone():
     assert np.random.rand() == expected_next
     second = official_padding(np.zeros((0, 2)), 20, num_queries=50)
     np.testing.assert_array_equal(first.positions, second.positions)
-    np.testing.assert_array_equal(first.occluded_prefix, second.occluded_prefix)
+    np.testing.assert_array_equal(first.start_frames, second.start_frames)
 
 
 def test_padding_with_many_real_points_returns_the_last_real_positions():
@@ -43,16 +43,16 @@ def test_padding_with_many_real_points_returns_the_last_real_positions():
     padding = official_padding(real, 30)
     np.testing.assert_array_equal(padding.positions, real[-300:])
     np.testing.assert_array_equal(
-        padding.occluded_prefix, np.random.RandomState(0).randint(0, 12, 300)
+        padding.start_frames, np.random.RandomState(0).randint(0, 12, 300)
     )
     assert len(official_padding(np.zeros((800, 2)), 30).positions) == 0
 
 
 def test_padding_of_short_videos_keeps_every_point_visible_somewhere():
     padding = official_padding(np.zeros((0, 2)), num_frames=5)
-    assert padding.occluded_prefix.max() == 4  # capped at T − 1 instead of failing
+    assert padding.start_frames.max() == 4  # capped at T − 1 instead of failing
     long = official_padding(np.zeros((0, 2)), num_frames=12)
-    assert long.occluded_prefix.max() == 11
+    assert long.start_frames.max() == 11
 
 
 def test_official_scaling_is_raster_times_255():
@@ -108,7 +108,7 @@ def test_strided_mode_fuses_a_forward_and_a_reversed_pass_per_query_frame(offici
     padded = np.concatenate(
         [points.queries[group], np.c_[np.full(len(padding.positions), 5), padding.positions]]
     )
-    labels = np.r_[np.ones(len(group), bool), padding.occluded_prefix <= 5]
+    labels = np.r_[np.ones(len(group), bool), padding.start_frames <= 5]
     forward, forward_visible = official_tiny._pass(clip.video, padded, labels)
     flipped = padded.copy()
     flipped[:, 0] = 8 - 5

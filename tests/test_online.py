@@ -126,3 +126,14 @@ def test_errors(predictor):
     online.step(short, video[:2])
     with pytest.raises(ValueError, match="ended after 2 of 5"):
         online.finish(short)
+
+
+def test_stream_queries_go_through_the_predictor_validator(predictor, monkeypatch):
+    online = OnlineTracker(predictor)
+    state = online.start(frame_size=(40, 56))
+    with pytest.raises(ValueError, match="real numbers"):
+        online.add_queries(state, [["a", "b", "c"]])
+    monkeypatch.setenv("TAPTR_MAX_POINTS", "2")
+    with pytest.raises(ValueError, match="TAPTR_MAX_POINTS"):
+        online.add_queries(state, QUERIES)
+    assert online.add_queries(state, QUERIES[:2]) == [0, 1]  # no length: any future frame

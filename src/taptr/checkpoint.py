@@ -2,7 +2,10 @@
 
 Files are always read with ``torch.load(weights_only=True)``. The authors' released file
 pickles an ``argparse.Namespace`` (its training arguments), which is allow-listed; any
-other Python object in a file is reported by name and never unpickled.
+other Python object in a file is reported by name and never unpickled. Before that, the file's
+size and the sizes it declares are checked against what it holds and the ``checkpoint_bytes``
+limit (`taptr.checkpoint_scan`), and a checkpoint's config and weights are validated before
+any module is built, so a small crafted file cannot make taptr allocate gigabytes.
 
 taptr's own format is a dict ``{"format": "taptr", "version": 1, "config": <ModelConfig as
 plain data>, "model": <state dict>, "ema": <state dict, optional>}``; training checkpoints
@@ -14,11 +17,9 @@ add more entries next to these. Inference uses ``ema`` when present. An optional
 from __future__ import annotations
 
 import argparse
+import functools
 import os
-import pickle
-import pickletools
 import warnings
-import zipfile
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -26,6 +27,8 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from taptr import limits
+from taptr.checkpoint_scan import ScanError, scan_checkpoint
 from taptr.config import ModelConfig, taptrv1, taptrv2
 from taptr.convert.official import (
     ConversionError,
@@ -54,94 +57,131 @@ class UnsafeCheckpointError(CheckpointError):
 def read_file(path: str | os.PathLike[str]) -> Any:
     """Loads a file with ``weights_only=True``, allowing only ``argparse.Namespace`` extra.
 
+    Before ``torch.load``, `taptr.checkpoint_scan.scan_checkpoint` checks the file's size,
+    the sizes its pickles declare against the data it holds (the ``checkpoint_bytes`` limit
+    of `taptr.limits`) and the globals it names, so a small crafted file cannot make
+    PyTorch allocate gigabytes.
+
     Raises:
         FileNotFoundError: the path does not exist.
         UnsafeCheckpointError: the file pickles other Python objects (they are named).
-        CheckpointError: the file is not a readable PyTorch checkpoint.
+        CheckpointError: the file is not a readable PyTorch checkpoint, declares more data
+            than it holds, or exceeds the size limit; the message names the file.
     """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint not found: {path}")
     try:
+        scan = scan_checkpoint(path)
+    except limits.LimitError as error:
+        raise CheckpointError(str(error)) from None
+    except ScanError as error:
+        raise CheckpointError(f"cannot read {path}: {error}") from None
+    unsafe = _unsafe(scan.globals)
+    if unsafe:
+        raise UnsafeCheckpointError(
+            f"refusing to load {path}: it contains Python objects that could run code when "
+            f"unpickled ({', '.join(unsafe)}); only tensors, plain data and argparse.Namespace "
+            "are accepted"
+        )
+    try:
         with warnings.catch_warnings(), torch.serialization.safe_globals(SAFE_GLOBALS):
             warnings.simplefilter("ignore", UserWarning)
             return torch.load(path, map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError as error:
-        unsafe = _unsafe_globals(path)
-        if unsafe:
-            raise UnsafeCheckpointError(
-                f"refusing to load {path}: it contains Python objects that could run code when "
-                f"unpickled ({', '.join(unsafe)}); only tensors, plain data and argparse.Namespace "
-                "are accepted"
-            ) from None
+    except Exception as error:  # PyTorch raises many types; none may escape unnamed
         raise CheckpointError(
-            f"cannot read {path}: not a PyTorch checkpoint ({_short_reason(error)})"
+            f"cannot read {path}: not a PyTorch checkpoint or corrupt ({_short_reason(error)})"
         ) from None
-    except Exception as error:
-        raise CheckpointError(
-            f"{path} is not a PyTorch checkpoint or is corrupt ({_short_reason(error)})"
-        ) from None
+
+
+def _unsafe(names: list[str]) -> list[str]:
+    """The globals, among ``names``, that the weights-only loader would refuse."""
+    try:
+        from torch._weights_only_unpickler import _get_allowed_globals
+
+        allowed = set(_get_allowed_globals())
+    except (ImportError, TypeError):  # pragma: no cover - another PyTorch: torch.load decides
+        return []
+    allowed |= {f"{g.__module__}.{g.__qualname__}" for g in SAFE_GLOBALS}
+    return list(dict.fromkeys(name for name in names if name not in allowed))
 
 
 def _short_reason(error: BaseException) -> str:
-    """The informative line of PyTorch's long weights-only error messages."""
+    """The informative line of PyTorch's long weights-only error messages.
+
+    PyTorch's text suggests ``weights_only=False``, which would run code from the file:
+    those lines are never passed on.
+    """
     text = str(error)
     marker = "WeightsUnpickler error:"
     if marker in text:
-        return "weights-only unpickler: " + text.split(marker, 1)[1].strip().splitlines()[0]
-    return text.strip().splitlines()[0] if text.strip() else type(error).__name__
+        text = text.split(marker, 1)[1]
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    advice = ("weights_only", "Weights only", "Please", "Check the documentation", "trusted")
+    useful = [line for line in lines if not any(word in line for word in advice)]
+    return useful[0] if useful else type(error).__name__
 
 
-def _unsafe_globals(path: Path) -> list[str]:
-    """Names of the Python globals a file would import, other than the allowed ones."""
-    allowed = {f"{g.__module__}.{g.__qualname__}" for g in SAFE_GLOBALS}
-    if zipfile.is_zipfile(path):
-        found = torch.serialization.get_unsafe_globals_in_checkpoint(path)
-    else:
-        found = _raw_pickle_globals(path)
-    return [name for name in found if name not in allowed]
+def check_weights(model: nn.Module, state_dict: Mapping[str, Any], source: str) -> None:
+    """Raises `CheckpointError` listing missing, unexpected and mismatched keys, if any.
+
+    Every weight must be a dense tensor of the model's shape and kind (floating point where
+    the model has floats, never complex), with finite values: NaN weights would give NaN
+    tracks without an error. ``model`` may live on the meta device (nothing allocated).
+    """
+    _check_against(model.state_dict(), state_dict, source)
 
 
-def _raw_pickle_globals(path: Path) -> list[str]:
-    """Globals named by a plain pickle stream, read without executing it."""
-    found: list[str] = []
-    strings: list[str] = []
-    try:
-        with path.open("rb") as stream:
-            for opcode, arg, _ in pickletools.genops(stream):
-                if opcode.name in ("GLOBAL", "INST"):
-                    found.append(str(arg).replace(" ", "."))
-                elif opcode.name == "STACK_GLOBAL" and len(strings) >= 2:
-                    found.append(f"{strings[-2]}.{strings[-1]}")
-                elif isinstance(arg, str):
-                    strings.append(arg)
-    except Exception:
-        pass
-    return [name for name in found if not name.startswith(("torch.", "collections.OrderedDict"))]
-
-
-def check_weights(model: nn.Module, state_dict: Mapping[str, Tensor], source: str) -> None:
-    """Raises `CheckpointError` listing missing, unexpected and mis-shaped keys, if any."""
-    expected = model.state_dict()
+def _check_against(
+    expected: Mapping[str, Tensor], state_dict: Mapping[str, Any], source: str
+) -> None:
+    """`check_weights` against the expected tensors (or meta tensors) of a model."""
     missing = [k for k in expected if k not in state_dict]
     unexpected = [k for k in state_dict if k not in expected]
+    present = [k for k in state_dict if k in expected]
+    tensors = [k for k in present if _dense(state_dict[k])]
+    not_tensors = [f"{k}: {type(state_dict[k]).__name__}" for k in present if k not in tensors]
     misshaped = [
         f"{k}: checkpoint {list(state_dict[k].shape)} vs model {list(expected[k].shape)}"
-        for k in state_dict
-        if k in expected and tuple(state_dict[k].shape) != tuple(expected[k].shape)
+        for k in tensors
+        if tuple(state_dict[k].shape) != tuple(expected[k].shape)
     ]
-    if not (missing or unexpected or misshaped):
+    mistyped = [
+        f"{k}: checkpoint {state_dict[k].dtype} vs model {expected[k].dtype}"
+        for k in tensors
+        if state_dict[k].is_complex()
+        or state_dict[k].is_floating_point() != expected[k].is_floating_point()
+    ]
+    non_finite = [
+        k
+        for k in tensors
+        if state_dict[k].is_floating_point() and not torch.isfinite(state_dict[k]).all()
+    ]
+    if not (missing or unexpected or not_tensors or misshaped or mistyped or non_finite):
         return
     lines = [f"{source} does not match the model:"]
     for title, keys in (
         ("missing", missing),
         ("unexpected", unexpected),
+        ("not a dense tensor", not_tensors),
         ("wrong shape", misshaped),
+        ("wrong dtype", mistyped),
+        ("non-finite values (NaN or inf)", non_finite),
     ):
         if keys:
             shown = keys[:10] + ([f"... {len(keys) - 10} more"] if len(keys) > 10 else [])
             lines.append(f"  {title} ({len(keys)}): " + ", ".join(shown))
     raise CheckpointError("\n".join(lines))
+
+
+def _dense(value: Any) -> bool:
+    """Whether ``value`` is an ordinary tensor with data (not sparse, quantized or meta)."""
+    return (
+        isinstance(value, Tensor)
+        and value.layout == torch.strided
+        and not value.is_quantized
+        and not value.is_meta
+    )
 
 
 def load_weights(model: nn.Module, state_dict: Mapping[str, Tensor], source: str) -> None:
@@ -150,30 +190,69 @@ def load_weights(model: nn.Module, state_dict: Mapping[str, Tensor], source: str
     model.load_state_dict(dict(state_dict), strict=True)
 
 
+def _config(data: Any, source: str) -> ModelConfig:
+    """The checkpoint's model config, validated (types and ranges) before any module exists."""
+    if not isinstance(data, Mapping):
+        raise CheckpointError(f"{source}: 'config' is a {type(data).__name__}, not a mapping")
+    try:
+        return ModelConfig.from_dict(dict(data))
+    except (ValueError, TypeError) as error:
+        raise CheckpointError(f"{source}: invalid model config: {error}") from None
+
+
+def _weights(checkpoint: Mapping[str, Any], source: str) -> dict[str, Any]:
+    """The EMA weights when present, else the model weights, as a name → tensor dict."""
+    key = "ema" if checkpoint.get("ema") is not None else "model"
+    weights = checkpoint.get(key)
+    if not isinstance(weights, Mapping) or not all(isinstance(k, str) for k in weights):
+        raise CheckpointError(f"{source}: '{key}' is not a dict of named weights")
+    return dict(weights)
+
+
+@functools.lru_cache(maxsize=4)
+def _skeleton(config: ModelConfig) -> dict[str, Tensor]:
+    """The meta-device state dict of the model ``config`` describes: no memory used."""
+    with torch.device("meta"):
+        return dict(build_model(config).state_dict())
+
+
+def _build_checked(config: ModelConfig, weights: Mapping[str, Any], source: str) -> TAPTR:
+    """Builds the model only once the weights match it (the check allocates nothing)."""
+    _check_against(_skeleton(config), weights, source)
+    return build_model(config)
+
+
 def model_from_checkpoint(
     checkpoint: Mapping[str, Any], source: str
 ) -> tuple[TAPTR, dict[str, Tensor]]:
     """Builds the model a loaded checkpoint describes and returns it with its weights.
 
+    The config is validated and the weights checked against the shapes and dtypes it
+    implies before any module is built, so a small file cannot build a large model.
+
     Args:
         checkpoint: the object read from the file.
         source: the file name, for messages.
+
+    Raises:
+        CheckpointError: unknown layout, invalid config, or weights that do not match.
     """
-    if checkpoint.get("format") == FORMAT:
-        if checkpoint.get("version") != VERSION:
+    if isinstance(checkpoint.get("format"), str) and checkpoint["format"] == FORMAT:
+        version = checkpoint.get("version")
+        if type(version) is not int or version != VERSION:  # a tensor or bool is no version
             raise CheckpointError(
-                f"{source}: unsupported taptr checkpoint version {checkpoint.get('version')}"
+                f"{source}: unsupported taptr checkpoint version {checkpoint.get('version')!r:.40}"
             )
-        config = ModelConfig.from_dict(checkpoint["config"])
-        weights = checkpoint.get("ema") or checkpoint["model"]
-        return build_model(config), dict(weights)
+        config = _config(checkpoint.get("config"), source)
+        weights = _weights(checkpoint, source)
+        return _build_checked(config, weights, source), weights
     if looks_official(checkpoint):
         try:
             converted, _ = convert_state_dict(official_weights(checkpoint))
         except ConversionError as error:
             raise CheckpointError(f"{source}: {error}") from None
         config = taptrv1() if official_version(converted) == 1 else taptrv2()
-        return build_model(config), converted
+        return _build_checked(config, converted, source), converted
     raise CheckpointError(
         f"{source} is neither a taptr checkpoint (no 'format': 'taptr' entry) nor an official "
         f"TAPTR release (no 'ema_model' / 'model' weights with official key names); "
@@ -188,6 +267,10 @@ def load_checkpoint(path: str | os.PathLike[str], *, device: str | torch.device 
         path: a taptr checkpoint (inference or training; EMA weights when present) or the
             authors' released file, converted on the fly.
         device: where to put the model.
+
+    Raises:
+        FileNotFoundError: the file does not exist.
+        CheckpointError: the file cannot be used (the message names it and the reason).
     """
     checkpoint = read_file(path)
     if not isinstance(checkpoint, Mapping):
@@ -237,7 +320,13 @@ def read_visibility_threshold(path: str | os.PathLike[str]) -> float | None:
     if not isinstance(checkpoint, Mapping) or checkpoint.get("format") != FORMAT:
         return None
     value = checkpoint.get("visibility_threshold")
-    return None if value is None else float(value)
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < 1:
+        raise CheckpointError(
+            f"{path}: visibility_threshold must be a number in (0, 1), got {value!r:.40}"
+        )
+    return float(value)
 
 
 def save_checkpoint(

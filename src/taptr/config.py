@@ -14,8 +14,92 @@ from typing import Any, Literal
 
 BackboneKind = Literal["resnet50", "convnet"]
 CrossAttentionKind = Literal["key_aware", "standard"]
+ResizeKind = Literal["lanczos", "bilinear"]
 
 RESNET50_CHANNELS = (256, 512, 1024, 2048)
+
+MAX_WIDTH = 4096
+"""Largest channel count (d_model, backbone widths); the paper uses 256 and 2048."""
+
+INT_RANGES: dict[str, tuple[int, int]] = {
+    "d_model": (4, MAX_WIDTH),
+    "num_heads": (1, 64),
+    "ffn_dim": (1, 4 * MAX_WIDTH),
+    "encoder_layers": (0, 32),
+    "decoder_layers": (0, 32),  # at least one: checked below with its own message
+    "encoder_points": (1, 64),
+    "decoder_points": (1, 64),
+    "version": (1, 2),
+    "window_size": (1, 64),
+    "window_stride": (1, 64),
+    "long_video_frames": (1, 1_000_000),
+    "context_points": (0, 10_000),
+}
+"""Documented range [low, high] of every integer field of `ModelConfig`.
+
+A checkpoint's config is checked against these before any module is built, so a crafted
+file cannot ask for a multi-gigabyte model; every preset lies well inside them.
+"""
+
+FLOAT_RANGES: dict[str, tuple[float, float]] = {
+    "sine_temperature": (1e-6, 1e6),
+    "window_dropout": (0.0, 0.999),
+}
+"""Documented range [low, high] of every float field of `ModelConfig`."""
+
+BOOL_FIELDS = (
+    "position_update",
+    "disentangler",
+    "cost_volume",
+    "temporal_attention",
+    "point_attention",
+    "memory_efficient",
+)
+
+INPUT_SIZE_RANGE = (16, 4096)
+"""Range of each of the model input's height and width."""
+
+
+def _check_int(name: str, value: Any, low: int, high: int) -> None:
+    # bool is an int subclass, but True is never meant as a width or a depth
+    if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
+        raise ValueError(
+            f"model config {name} must be an integer in [{low}, {high}], got {value!r:.40}"
+        )
+
+
+def _check_fields(
+    config: Any,
+    ints: dict[str, tuple[int, int]],
+    floats: dict[str, tuple[float, float]],
+    bools: tuple[str, ...],
+) -> None:
+    """Type and range of each listed field, with an error naming the first bad one."""
+    for name, (low, high) in ints.items():
+        if hasattr(config, name):
+            _check_int(name, getattr(config, name), low, high)
+    for name, (low_f, high_f) in floats.items():
+        value = getattr(config, name)
+        if (
+            isinstance(value, bool)
+            or not isinstance(value, (int, float))
+            or not low_f <= value <= high_f
+        ):
+            raise ValueError(
+                f"model config {name} must be a number in [{low_f}, {high_f}], got {value!r:.40}"
+            )
+    for name in bools:
+        if not isinstance(getattr(config, name), bool):
+            raise ValueError(
+                f"model config {name} must be true or false, got {getattr(config, name)!r:.40}"
+            )
+
+
+def _check_size(size: Any) -> None:
+    if not isinstance(size, (tuple, list)) or len(size) != 2:
+        raise ValueError(f"model config input_size must be (height, width), got {size!r:.40}")
+    for side in size:
+        _check_int("input_size", side, *INPUT_SIZE_RANGE)
 
 
 @dataclass(frozen=True)
@@ -36,8 +120,10 @@ class BackboneConfig:
     def __post_init__(self) -> None:
         if self.kind not in ("resnet50", "convnet"):
             raise ValueError(f"unknown backbone kind {self.kind!r}; use 'resnet50' or 'convnet'")
-        if len(self.channels) != 4:
-            raise ValueError(f"backbone needs 4 level widths, got {self.channels}")
+        if not isinstance(self.channels, (tuple, list)) or len(self.channels) != 4:
+            raise ValueError(f"backbone needs 4 level widths, got {self.channels!r:.60}")
+        for width in self.channels:
+            _check_int("backbone.channels", width, 1, MAX_WIDTH)
         if self.kind == "resnet50" and tuple(self.channels) != RESNET50_CHANNELS:
             raise ValueError(f"resnet50 has fixed widths {RESNET50_CHANNELS}, got {self.channels}")
 
@@ -82,6 +168,13 @@ class ModelConfig:
             frames only after every ⌊T / long_video_frames⌋-th window (official eval rule).
         window_dropout: dropout on the between-window content update (training only).
         input_size: (height, width) the predictor resizes videos to before the model.
+        resize: how the predictor resizes frames to ``input_size``: ``"lanczos"`` (the
+            official demo's mediapy resize, Pillow's Lanczos on float frames, not clipped)
+            or ``"bilinear"`` (antialiased bilinear, what taptr's own models are trained on).
+        context_points: the number of points the model was trained and evaluated with. The
+            predictor adds seeded context points to the user's queries up to this count
+            (TAPTRv2-SPEC §6: points attend to each other in every decoder layer, so a
+            handful of points alone is out of the training distribution); 0 adds none.
     """
 
     backbone: BackboneConfig = field(default_factory=BackboneConfig)
@@ -106,8 +199,12 @@ class ModelConfig:
     long_video_frames: int = 24
     window_dropout: float = 0.6
     input_size: tuple[int, int] = (512, 512)
+    resize: ResizeKind = "lanczos"
+    context_points: int = 800
 
     def __post_init__(self) -> None:
+        _check_fields(self, INT_RANGES, FLOAT_RANGES, BOOL_FIELDS)
+        _check_size(self.input_size)
         if self.d_model % self.num_heads:
             raise ValueError(f"d_model {self.d_model} is not divisible by {self.num_heads} heads")
         if self.d_model % 4:
@@ -128,6 +225,12 @@ class ModelConfig:
             raise ValueError("need 1 <= window_stride <= window_size")
         if self.decoder_layers < 1 or self.encoder_layers < 0:
             raise ValueError("need at least one decoder layer and a non-negative encoder depth")
+        if self.resize not in ("lanczos", "bilinear"):
+            raise ValueError(f"unknown resize {self.resize!r}; use 'lanczos' or 'bilinear'")
+        if not isinstance(self.context_points, int) or self.context_points < 0:
+            raise ValueError(
+                f"context_points must be a whole number >= 0, got {self.context_points}"
+            )
 
     @property
     def num_levels(self) -> int:
@@ -147,14 +250,30 @@ class ModelConfig:
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> ModelConfig:
         """Inverse of `to_dict`; unknown keys are an error naming them."""
+        if not isinstance(data, dict):
+            raise ValueError(f"model config must be a mapping, got {type(data).__name__}")
         known = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(data) - known)
+        unknown = sorted(map(str, set(data) - known))
         if unknown:
             raise ValueError(f"unknown model config keys: {', '.join(unknown)}")
         values = _tuples(dict(data))
+        # files written before these fields existed were run without context points and
+        # with the bilinear resize
+        values.setdefault("context_points", 0)
+        values.setdefault("resize", "bilinear")
         if "backbone" in values:
-            values["backbone"] = BackboneConfig(**_tuples(dict(values["backbone"])))
+            values["backbone"] = _backbone_from_dict(values["backbone"])
         return cls(**values)
+
+
+def _backbone_from_dict(data: Any) -> BackboneConfig:
+    """`BackboneConfig` from plain data; unknown keys and wrong types name the key."""
+    if not isinstance(data, dict):
+        raise ValueError(f"model config backbone must be a mapping, got {type(data).__name__}")
+    unknown = sorted(map(str, set(data) - {f.name for f in dataclasses.fields(BackboneConfig)}))
+    if unknown:
+        raise ValueError(f"unknown backbone config keys: {', '.join(unknown)}")
+    return BackboneConfig(**_tuples(dict(data)))
 
 
 def _lists(value: Any) -> Any:
@@ -196,6 +315,8 @@ def tiny() -> ModelConfig:
         encoder_points=2,
         decoder_points=2,
         input_size=(64, 64),
+        resize="bilinear",
+        context_points=0,
     )
 
 
@@ -211,6 +332,8 @@ def small() -> ModelConfig:
         num_heads=4,
         ffn_dim=256,
         input_size=(128, 128),
+        resize="bilinear",
+        context_points=128,
     )
 
 

@@ -71,15 +71,54 @@ class RegionOverlay:
     points: np.ndarray
 
 
-def read_mask(path: str | os.PathLike[str]) -> np.ndarray:
-    """Reads a mask image (white region on black) as an (H, W) bool array."""
+def read_mask(
+    path: str | os.PathLike[str], *, name: str = "mask", size: tuple[int, int] | None = None
+) -> np.ndarray:
+    """Reads a mask image as an (H, W) bool array, True inside the region.
+
+    The rule: a pixel is inside when it is not black and not transparent, that is when
+    any colour channel is non-zero and its alpha (in images that have one) is non-zero.
+    So a white-on-black mask, a 0/1-valued PNG and a region painted on a transparent
+    layer all read as drawn; anti-aliased edges count as inside.
+
+    Args:
+        path: image file (PNG recommended; any format OpenCV reads, 8 or 16 bits).
+        name: what messages call the file, e.g. ``"--mask"`` for the command line.
+        size: (height, width) the mask must have (the video's), or None for any.
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: naming the file, when it is not an image, has another size than
+            ``size`` or no pixel is inside.
+    """
     source = Path(path)
     if not source.is_file():
-        raise FileNotFoundError(f"mask not found: {source}")
-    image = cv2.imread(str(source), cv2.IMREAD_GRAYSCALE)
-    if image is None:
-        raise ValueError(f"cannot read mask image {source}")
-    return image > 127
+        raise FileNotFoundError(f"{name} {source}: file not found")
+    image = cv2.imread(str(source), cv2.IMREAD_UNCHANGED)
+    if image is None or image.ndim not in (2, 3) or image.size == 0:
+        raise ValueError(f"{name} {source}: not an image OpenCV can read (use a PNG)")
+    height, width = image.shape[:2]
+    if size is not None and (height, width) != tuple(size):
+        raise ValueError(f"{name} {source} is {width}x{height}, the video is {size[1]}x{size[0]}")
+    mask = _inside(image)
+    if not mask.any():
+        raise ValueError(
+            f"{name} {source}: no pixel is inside the region (inside = not black and not "
+            "transparent)"
+        )
+    return mask
+
+
+def _inside(image: np.ndarray) -> np.ndarray:
+    """Pixels that are neither black nor transparent, for OpenCV's 1-4 channel layouts."""
+    if image.ndim == 2:
+        return image != 0
+    channels = image.shape[2]
+    colour = image[..., : 3 if channels >= 3 else 1]
+    inside = (colour != 0).any(axis=-1)
+    if channels in (2, 4):  # grey + alpha, BGRA
+        inside &= image[..., -1] != 0
+    return inside
 
 
 def sample_region_queries(

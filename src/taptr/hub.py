@@ -1,20 +1,25 @@
 """Named models: published weights, bundled weights, presets, and local checkpoint files.
 
-``from_pretrained(name_or_path)`` (and `resolve_model`, which the predictor uses) accepts,
-in this order:
+``from_pretrained(name_or_path)`` (and `load_model`, which the predictor uses) accepts, in
+this order:
 
 1. a path to a checkpoint file (taptr's format or the authors' release);
 2. the name of weights published on the Hugging Face Hub (`WEIGHTS`), fetched through
    ``huggingface_hub``: the local Hub cache is used when it holds the file, offline mode
-   (``HF_HUB_OFFLINE=1``) never touches the network, and a SHA-256 in the registry is
-   checked when present;
+   (``HF_HUB_OFFLINE=1``) never touches the network, and a download is checked against a
+   SHA-256 (the registry's when set, else the Hub's own for large files);
 3. the name of weights that ship inside the package (`BUNDLED`);
 4. a preset name: the architecture with freshly initialised, untrained weights (a warning
    says so).
 
+**The default** (no name): the paper's weights, `DEFAULT_MODEL`, from the cache or
+downloaded once (after a one-line notice of their licence); when they cannot be had
+(offline, no ``huggingface_hub``, the Hub unreachable within `PROBE_TIMEOUT` seconds, a
+corrupt download), the bundled `FALLBACK_MODEL` with one warning line saying what to expect
+and how to get the paper's weights. A single attempt: no retries.
+
 Every file is read by the strict, safe loader (`taptr.checkpoint.load_checkpoint`).
-Nothing is downloaded at import; a download happens only when a published name is asked
-for, it is not cached, and offline mode is off.
+Nothing is downloaded at import. ``HF_ENDPOINT`` and ``HF_HUB_OFFLINE`` are read at call time.
 """
 
 from __future__ import annotations
@@ -22,9 +27,11 @@ from __future__ import annotations
 import hashlib
 import logging
 import os
+import re
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
+from typing import NamedTuple
 
 import torch
 
@@ -45,6 +52,7 @@ class HubWeights:
         filename: the file inside it.
         preset: the architecture the file holds (a key of `taptr.config.PRESETS`).
         title: the model's name in messages.
+        licence: the weights' licence, named before a download.
         sha256: hex digest of the file, checked after download when set.
     """
 
@@ -52,6 +60,7 @@ class HubWeights:
     filename: str
     preset: str
     title: str
+    licence: str
     sha256: str | None = None
 
     @property
@@ -62,16 +71,47 @@ class HubWeights:
 
 # the authors publish both generations in one repository; digests are added once the
 # published files are verified, and are checked from then on
+_IDEA_LICENCE = "IDEA License 1.0, non-commercial use only"
 WEIGHTS = {
-    "taptrv2-official": HubWeights("HYeungLee/TAPTR-Series", "taptrv2.pth", "taptrv2", "TAPTRv2"),
-    "taptrv1-official": HubWeights("HYeungLee/TAPTR-Series", "taptrv1.pth", "taptrv1", "TAPTR v1"),
+    "taptrv2-official": HubWeights(
+        "HYeungLee/TAPTR-Series", "taptrv2.pth", "taptrv2", "TAPTRv2", _IDEA_LICENCE
+    ),
+    "taptrv1-official": HubWeights(
+        "HYeungLee/TAPTR-Series", "taptrv1.pth", "taptrv1", "TAPTR v1", _IDEA_LICENCE
+    ),
 }
 """Weights on the Hugging Face Hub: name → where the file is and what it holds."""
 
 BUNDLED = {"taptr-small-synthetic": ("taptr-small-synthetic.pth", "small")}
 """Weights inside the package: name → (file under ``taptr/weights``, preset it was trained as)."""
 
-DEFAULT_MODEL = "taptr-small-synthetic"
+DEFAULT_MODEL = "taptrv2-official"
+"""What runs when no model is named: the paper's weights."""
+
+FALLBACK_MODEL = "taptr-small-synthetic"
+"""What runs instead when the default cannot be had."""
+
+PROBE_TIMEOUT = 5.0
+"""Seconds to wait for the Hub before falling back (one attempt)."""
+
+_SHA256 = re.compile(r"^[0-9a-f]{64}$")
+
+
+class ModelChoice(NamedTuple):
+    """A loaded model and where it came from.
+
+    Attributes:
+        model: the network, in eval mode on the CPU.
+        name: the name or path it was loaded as.
+        path: the file it was read from (None for a preset).
+        notice: the fallback warning, when the default model could not be had.
+    """
+
+    model: TAPTR
+    name: str
+    path: Path | None
+    notice: str | None = None
+
 
 _TRUE = {"1", "on", "yes", "true"}
 
@@ -125,62 +165,161 @@ def _missing_message(name: str, entry: HubWeights, cache: str, reason: str) -> s
 def weights_path(name: str, *, cache_dir: str | os.PathLike[str] | None = None) -> Path:
     """The local file of published weights ``name``, downloaded only when needed and allowed.
 
+    The cache is read first, without a request. Otherwise (and not offline) the Hub is asked
+    once, within `PROBE_TIMEOUT` seconds, then the file is downloaded with a progress bar
+    after a one-line notice of its licence, and checked against its SHA-256 (a corrupt file
+    is deleted from the cache).
+
     Args:
         name: a key of `WEIGHTS`.
         cache_dir: Hugging Face cache folder (default: the Hub's, ``HF_HUB_CACHE``).
 
     Raises:
         KeyError: ``name`` is not published weights.
-        FileNotFoundError: not cached and offline (or the download failed); says which
-            file to download and where to put it.
+        FileNotFoundError: not cached and offline (or the Hub could not be reached, or the
+            download failed); says which file to download and where to put it.
         ModuleNotFoundError: ``huggingface_hub`` is missing (``pip install 'taptr[hub]'``).
-        CheckpointError: the file does not have the registry's SHA-256.
+        CheckpointError: the file does not have its SHA-256.
     """
     entry = WEIGHTS[name]
     try:
         from huggingface_hub import constants, hf_hub_download
-        from huggingface_hub.errors import LocalEntryNotFoundError
     except ImportError:
         raise ModuleNotFoundError(
             f"{name} is fetched with huggingface_hub: pip install 'taptr[hub]', or download "
             f"{entry.url} yourself and pass the file's path"
         ) from None
-    offline = hub_offline()
-    cache = str(cache_dir or constants.HF_HUB_CACHE)
+    cache = Path(cache_dir) if cache_dir is not None else None
+    try:
+        path = Path(
+            hf_hub_download(entry.repo_id, entry.filename, cache_dir=cache, local_files_only=True)
+        )
+    except Exception:
+        path = None
+    if path is not None:
+        _check_sha256(path, name, entry.sha256)
+        return path
+    folder = str(cache or constants.HF_HUB_CACHE)
+    if hub_offline():
+        reason = "downloads are disabled (HF_HUB_OFFLINE=1)"
+        raise FileNotFoundError(_missing_message(name, entry, folder, reason))
+    return _download(name, entry, cache, folder)
+
+
+def _download(name: str, entry: HubWeights, cache: Path | None, folder: str) -> Path:
+    """One probe of the Hub, then the download and its SHA-256 check."""
+    from huggingface_hub import get_hf_file_metadata, hf_hub_download, hf_hub_url
+
+    # read now: huggingface_hub reads HF_ENDPOINT once, at its import
+    endpoint = os.environ.get("HF_ENDPOINT") or None
+    url = hf_hub_url(entry.repo_id, entry.filename, endpoint=endpoint)
+    try:
+        # a single request with a short timeout: hf_hub_download alone retries for ~25 s
+        metadata = get_hf_file_metadata(url, timeout=PROBE_TIMEOUT, endpoint=endpoint)
+    except Exception as error:
+        reason = f"the Hub could not be reached ({_first_line(error)})"
+        raise FileNotFoundError(_missing_message(name, entry, folder, reason)) from None
+    logger.warning(
+        "downloading %s weights (%s) from %s: %s, see https://huggingface.co/%s",
+        entry.title,
+        entry.filename,
+        url,
+        entry.licence,
+        entry.repo_id,
+    )
     try:
         path = Path(
             hf_hub_download(
                 entry.repo_id,
                 entry.filename,
-                cache_dir=None if cache_dir is None else Path(cache_dir),
-                local_files_only=offline,
+                cache_dir=cache,
+                endpoint=endpoint,
+                etag_timeout=PROBE_TIMEOUT,
             )
         )
-    except LocalEntryNotFoundError as error:
-        reason = (
-            "downloads are disabled (HF_HUB_OFFLINE=1)"
-            if offline
-            else f"could not be downloaded ({str(error).splitlines()[0]})"
-        )
-        raise FileNotFoundError(_missing_message(name, entry, cache, reason)) from None
-    if entry.sha256 is not None:
-        found = file_sha256(path)
-        if found != entry.sha256.lower():
-            raise CheckpointError(
-                f"{path} has SHA-256 {found}, but {name} is {entry.sha256}: the file is "
-                "corrupt or not the published one; delete it and download it again"
-            )
+    except Exception as error:
+        reason = f"the download failed ({_first_line(error)})"
+        raise FileNotFoundError(_missing_message(name, entry, folder, reason)) from None
+    hub_digest = (metadata.etag or "").lower()
+    _check_sha256(path, name, entry.sha256 or (hub_digest if _SHA256.match(hub_digest) else None))
     return path
 
 
-def _load_published(name: str, cache_dir: str | os.PathLike[str] | None) -> TAPTR:
+def _check_sha256(path: Path, name: str, expected: str | None) -> None:
+    """Deletes ``path`` from the cache and raises when its digest is not ``expected``."""
+    if expected is None:
+        return
+    found = file_sha256(path)
+    if found != expected.lower():
+        blob = path.resolve()
+        path.unlink(missing_ok=True)
+        blob.unlink(missing_ok=True)
+        raise CheckpointError(
+            f"{path} has SHA-256 {found}, but {name} is {expected}: the file is corrupt or "
+            "not the published one; it was deleted from the cache, try again"
+        )
+
+
+def _first_line(error: BaseException) -> str:
+    text = str(error).strip()
+    return text.splitlines()[0] if text else type(error).__name__
+
+
+def _published_path(name: str, cache_dir: str | os.PathLike[str] | None) -> Path:
     entry = WEIGHTS[name]
     if entry.preset not in PRESETS:  # checked first: no download of a file we cannot load
         raise NotImplementedError(
             f"{entry.title} is not supported yet: this version of taptr has no "
             f"{entry.preset!r} architecture to load {entry.filename} into"
         )
-    return load_checkpoint(weights_path(name, cache_dir=cache_dir))
+    return weights_path(name, cache_dir=cache_dir)
+
+
+def fallback_notice(reason: str) -> str:
+    """The one line said when the default model falls back to the bundled one."""
+    entry = WEIGHTS[DEFAULT_MODEL]
+    return (
+        f"the paper's weights ({DEFAULT_MODEL}) are not available ({reason}); using the "
+        f"bundled {FALLBACK_MODEL}, trained on synthetic videos only: its tracks on real "
+        f"footage will be rough. Get the paper's weights with: pip install 'taptr[hub]' "
+        f"&& hf download {entry.repo_id} {entry.filename}"
+    )
+
+
+def load_model(
+    name_or_path: str | os.PathLike[str] | None = None,
+    *,
+    cache_dir: str | os.PathLike[str] | None = None,
+) -> ModelChoice:
+    """Loads a model by path or name, in eval mode on the CPU, and says where it came from.
+
+    Args:
+        name_or_path: a checkpoint file, a published weights name (`WEIGHTS`), a bundled
+            weights name, a preset name (untrained), or None for the default: the paper's
+            weights, else the bundled model with one warning (see the module docstring).
+        cache_dir: Hugging Face cache folder for published weights (default: the Hub's).
+
+    Raises:
+        FileNotFoundError: neither an existing file nor a known name (lists the names), or
+            named published weights that are neither cached nor downloadable.
+        NotImplementedError: published weights of an architecture taptr does not have.
+    """
+    if name_or_path is None:
+        return _default_model(cache_dir)
+    name = str(name_or_path)
+    if Path(name).is_file():
+        return ModelChoice(load_checkpoint(name), name, Path(name))
+    if name in WEIGHTS:
+        path = _published_path(name, cache_dir)
+        return ModelChoice(load_checkpoint(path), name, path)
+    if name in BUNDLED:
+        return _bundled(name)
+    if name in PRESETS:
+        logger.warning("preset %r has UNTRAINED weights: its tracks are meaningless", name)
+        return ModelChoice(build_model(name).eval(), name, None)
+    raise FileNotFoundError(
+        f"no checkpoint file or model named {name!r}; known names: {', '.join(known_names())}"
+    )
 
 
 def resolve_model(
@@ -188,41 +327,47 @@ def resolve_model(
     *,
     cache_dir: str | os.PathLike[str] | None = None,
 ) -> TAPTR:
-    """Loads a model by path or name, in eval mode on the CPU.
+    """The model of `load_model` alone."""
+    return load_model(name_or_path, cache_dir=cache_dir).model
 
-    Args:
-        name_or_path: a checkpoint file, a published weights name (`WEIGHTS`), a bundled
-            weights name, a preset name (untrained) or None for the default bundled model.
-        cache_dir: Hugging Face cache folder for published weights (default: the Hub's).
 
-    Raises:
-        FileNotFoundError: neither an existing file nor a known name (lists the names), or
-            published weights that are neither cached nor downloadable (says what to do).
-        NotImplementedError: published weights of an architecture taptr does not have.
-    """
-    name = DEFAULT_MODEL if name_or_path is None else str(name_or_path)
-    if Path(name).is_file():
-        return load_checkpoint(name)
-    if name in WEIGHTS:
-        return _load_published(name, cache_dir)
-    if name in BUNDLED:
-        path = bundled_path(name)
-        if path is not None:
-            return load_checkpoint(path)
-        preset = BUNDLED[name][1] if BUNDLED[name][1] in PRESETS else "tiny"
-        logger.warning(
-            "bundled weights %r are not installed: using the %r preset with UNTRAINED weights, "
-            "whose tracks are meaningless",
-            name,
-            preset,
-        )
-        return build_model(preset).eval()
-    if name in PRESETS:
-        logger.warning("preset %r has UNTRAINED weights: its tracks are meaningless", name)
-        return build_model(name).eval()
-    raise FileNotFoundError(
-        f"no checkpoint file or model named {name!r}; known names: {', '.join(known_names())}"
+def _default_model(cache_dir: str | os.PathLike[str] | None) -> ModelChoice:
+    """The paper's weights when they can be had, else the bundled model and one warning."""
+    try:
+        path = _published_path(DEFAULT_MODEL, cache_dir)
+        return ModelChoice(load_checkpoint(path), DEFAULT_MODEL, path)
+    except (FileNotFoundError, ModuleNotFoundError, CheckpointError) as error:
+        reason = _reason(error)
+    notice = fallback_notice(reason)
+    logger.warning(notice)
+    return _bundled(FALLBACK_MODEL)._replace(notice=notice)
+
+
+def _reason(error: BaseException) -> str:
+    """The short cause of a failed fetch, for the fallback line."""
+    if isinstance(error, ModuleNotFoundError):
+        return "huggingface_hub is not installed"
+    if isinstance(error, CheckpointError):
+        return "the download was corrupt"
+    text = str(error)
+    if "HF_HUB_OFFLINE" in text:
+        return "not in the Hugging Face cache and HF_HUB_OFFLINE=1"
+    found = re.search(r"and (the Hub could not be reached|the download failed)", text)
+    return f"not in the Hugging Face cache and {found.group(1)}" if found else _first_line(error)
+
+
+def _bundled(name: str) -> ModelChoice:
+    path = bundled_path(name)
+    if path is not None:
+        return ModelChoice(load_checkpoint(path), name, path)
+    preset = BUNDLED[name][1] if BUNDLED[name][1] in PRESETS else "tiny"
+    logger.warning(
+        "bundled weights %r are not installed: using the %r preset with UNTRAINED weights, "
+        "whose tracks are meaningless",
+        name,
+        preset,
     )
+    return ModelChoice(build_model(preset).eval(), name, None)
 
 
 def from_pretrained(
@@ -237,7 +382,8 @@ def from_pretrained(
     (from the Hugging Face cache, downloading it once when allowed).
 
     Args:
-        name_or_path: see `resolve_model`; None gives the bundled default model.
+        name_or_path: see `load_model`; None gives the default model (the paper's weights,
+            else the bundled model with a warning).
         device: where to put the model.
         cache_dir: Hugging Face cache folder for published weights (default: the Hub's).
     """

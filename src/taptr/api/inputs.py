@@ -6,9 +6,25 @@ NaN), so that the CLI can print it without a traceback.
 
 from __future__ import annotations
 
+import operator
+from typing import Any
+
 import numpy as np
 import torch
 from torch import Tensor
+
+from taptr.limits import LIMITS, limit
+
+MAX_POINTS_ENV = LIMITS["points"].variable
+"""Environment variable that raises the most query points per call (read at every call).
+
+The default, ``LIMITS["points"].default`` (100,000, ten times the 10k-point benchmark),
+keeps a call within the memory of ordinary machines: each point costs memory in every
+window of the decoder and in the results.
+"""
+
+RESULT_BYTES_PER_POINT_FRAME = 16
+"""Bytes of the result per point and frame: float32 (x, y), logit and visibility (padded)."""
 
 
 def video_tensor(video: np.ndarray | Tensor) -> Tensor:
@@ -50,7 +66,7 @@ def as_unit_float(frames: Tensor) -> Tensor:
 
 
 def query_tensor(
-    queries: np.ndarray | Tensor, batch: int, num_frames: int, height: int, width: int
+    queries: np.ndarray | Tensor, batch: int, num_frames: int | None, height: int, width: int
 ) -> Tensor:
     """Validates (t, x, y) pixel queries and returns them as (B, N, 3) float32.
 
@@ -58,27 +74,34 @@ def query_tensor(
         queries: (N, 3) or (B, N, 3) as (t, x, y): frame index and pixel position with
             pixel centres at integers.
         batch: number of videos B.
-        num_frames: frames T of the video.
+        num_frames: frames T of the video; None for a stream of unknown length (no upper
+            bound on t, and results are not held, so their memory is not checked).
         height: frame height H in pixels.
         width: frame width W in pixels.
+
+    Raises:
+        ValueError: queries that are not real numbers (text, objects, complex, bool), of
+            the wrong shape, non-finite or outside the video; more than `max_points`
+            points; or results that would not fit in the available memory.
     """
-    q = torch.as_tensor(np.asarray(queries) if not isinstance(queries, Tensor) else queries)
-    q = q.detach().to("cpu", torch.float64)
+    q = _real_tensor(queries).detach().to("cpu", torch.float64)
     if q.dim() == 2:
         q = q[None].expand(batch, -1, -1)
     if q.dim() != 3 or q.shape[-1] != 3 or q.shape[0] != batch:
         raise ValueError(
             f"queries must be (N, 3) or (B={batch}, N, 3) as (t, x, y), got {tuple(q.shape)}"
         )
+    check_num_points(q.shape[1])
+    if num_frames is not None:
+        check_result_memory(batch, num_frames, q.shape[1])
     if not bool(torch.isfinite(q).all()):
         raise ValueError("queries contain NaN or infinite values")
     t, x, y = q.unbind(-1)
     if bool((t != t.round()).any()):
         raise ValueError("query frames t must be whole frame indices")
-    if q.shape[1] and (float(t.min()) < 0 or float(t.max()) >= num_frames):
-        raise ValueError(
-            f"query frame t outside [0, {num_frames}) (got {int(t.min())}..{int(t.max())})"
-        )
+    end = float("inf") if num_frames is None else num_frames
+    if q.shape[1] and (float(t.min()) < 0 or float(t.max()) >= end):
+        raise ValueError(f"query frame t outside [0, {end}) (got {int(t.min())}..{int(t.max())})")
     # pixel centres sit at integers, so the image area spans [-0.5, size - 0.5]
     bad_x = bool(((x < -0.5) | (x > width - 0.5)).any())
     bad_y = bool(((y < -0.5) | (y > height - 0.5)).any())
@@ -90,11 +113,104 @@ def query_tensor(
     return q.float()
 
 
-def grid_queries(grid_size: int, frame: int, height: int, width: int) -> Tensor:
-    """A grid_size × grid_size grid of queries at cell centres of one frame, (N, 3) as (t, x, y)."""
+def grid_queries(
+    grid_size: int, frame: int, height: int, width: int, *, name: str = "grid_size"
+) -> Tensor:
+    """A grid_size × grid_size grid of queries at cell centres of one frame, (N, 3) as (t, x, y).
+
+    Args:
+        grid_size: points per side, a whole number of at least 1.
+        frame: frame index t of every query.
+        height: frame height H in pixels.
+        width: frame width W in pixels.
+        name: how error messages call ``grid_size`` (the CLI passes ``--grid``).
+    """
+    grid_size = _whole_number(grid_size, name)
     if grid_size < 1:
-        raise ValueError(f"grid_size must be at least 1, got {grid_size}")
+        raise ValueError(f"{name} must be at least 1, got {grid_size}")
+    check_num_points(grid_size * grid_size, f"{name} {grid_size}")
     xs = (torch.arange(grid_size, dtype=torch.float32) + 0.5) * width / grid_size - 0.5
     ys = (torch.arange(grid_size, dtype=torch.float32) + 0.5) * height / grid_size - 0.5
     gy, gx = torch.meshgrid(ys, xs, indexing="ij")
     return torch.stack((torch.full_like(gx, float(frame)), gx, gy), dim=-1).view(-1, 3)
+
+
+def max_points() -> int:
+    """The most points per call: 100,000, or the value of `MAX_POINTS_ENV` when set."""
+    return limit("points")
+
+
+def check_num_points(count: int, what: str = "queries") -> None:
+    """Raises a ValueError, saying how to raise the limit, when ``count`` > `max_points`.
+
+    Args:
+        count: number of points asked for.
+        what: what asked for them, for the message (``"--grid 1000"``, a file name, ...).
+    """
+    limit = max_points()
+    if count > limit:
+        raise ValueError(
+            f"{what}: {count:,} points, more than the limit of {limit:,} per call; track "
+            f"them in batches, or set the environment variable {MAX_POINTS_ENV}={count} "
+            "if this machine has the memory"
+        )
+
+
+def check_result_memory(batch: int, num_frames: int, num_points: int) -> None:
+    """Raises a ValueError when the results alone would not fit in the available memory.
+
+    A cheap lower bound, checked before any window runs: the (B, T, N) tracks, logits and
+    visibility. The decoder needs more on top, so passing this check does not promise that
+    the run fits.
+    """
+    needed = batch * num_frames * num_points * RESULT_BYTES_PER_POINT_FRAME
+    available = _available_memory()
+    if available is not None and needed > available:
+        raise ValueError(
+            f"tracking {num_points:,} points through {batch * num_frames:,} frames needs "
+            f"{needed / 2**30:.1f} GiB for the results alone, more than the "
+            f"{available / 2**30:.1f} GiB of memory available; track fewer points or frames"
+        )
+
+
+def _available_memory() -> int | None:
+    """Bytes of memory the system reports available (Linux), or None where it does not say."""
+    try:
+        with open("/proc/meminfo") as stream:
+            for line in stream:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
+
+
+def _whole_number(value: Any, name: str) -> int:
+    """``value`` as an int; bools, floats and strings are refused (2.5 must not become 2)."""
+    if isinstance(value, bool | np.bool_):
+        raise ValueError(f"{name} must be a whole number, got {value!r}")
+    try:
+        return operator.index(value)
+    except TypeError:
+        raise ValueError(f"{name} must be a whole number, got {value!r}") from None
+
+
+def _real_tensor(queries: Any) -> Tensor:
+    """Queries as a tensor of real numbers; strings, objects, complex and bools are refused."""
+    expected = "queries must be an (N, 3) or (B, N, 3) array of real numbers (t, x, y)"
+    if isinstance(queries, Tensor):
+        if queries.is_complex() or queries.dtype == torch.bool:
+            raise ValueError(f"{expected}, got a {queries.dtype} tensor")
+        return queries
+    try:
+        array = np.asarray(queries)
+    except (TypeError, ValueError):  # ragged nested lists, odd objects
+        raise ValueError(f"{expected}, got rows of different lengths") from None
+    if array.dtype.kind not in "iuf":
+        raise ValueError(f"{expected}, got {_describe(array)}")
+    return torch.from_numpy(np.ascontiguousarray(array, dtype=np.float64))
+
+
+def _describe(array: np.ndarray) -> str:
+    kinds = {"U": "text", "S": "bytes", "O": "Python objects", "c": "complex numbers"}
+    return kinds.get(array.dtype.kind, f"dtype {array.dtype}")

@@ -8,12 +8,16 @@ A window is decoded once a frame after its last frame has arrived (so that a poi
 on the newest frame still joins it), and a frame's tracks are returned once no later
 window can change them: at most about one window (8 frames) behind the newest frame.
 
+Context points (`taptr.api.context`) are drawn when the first window is decoded, from the
+points known then, and are never returned; points added later join them.
+
 The result equals the offline `Predictor.track` on the same frames and queries, given
 that every query is added before a window containing its query frame is decoded (always
-true for queries on the newest frame), when the stream is shorter than 48 frames or its
-length is declared in `OnlineTracker.start`. For longer undeclared streams the official
-long-video rule (content handed to future frames only after every ⌊T / 24⌋-th window) is
-unknowable in advance, and the content is handed over after every window instead.
+true for queries on the newest frame; with context points, before the first window), when
+the stream is shorter than 48 frames or its length is declared in `OnlineTracker.start`.
+For longer undeclared streams the official long-video rule (content handed to future
+frames only after every ⌊T / 24⌋-th window) is unknowable in advance, and the content is
+handed over after every window instead.
 """
 
 from __future__ import annotations
@@ -24,7 +28,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from taptr.api.inputs import video_tensor
+from taptr.api.context import with_context
+from taptr.api.inputs import query_tensor, video_tensor
 from taptr.api.predictor import Predictor
 from taptr.geometry import normalized_to_pixels, pixels_to_normalized
 from taptr.model.taptr import FrameFeatures
@@ -55,6 +60,8 @@ class StreamState:
         queries: (N, 3) float32 (t, x, y) pixels of the current points.
         point_ids: identifier of each current point, in order.
         next_id: identifier of the next point added.
+        is_context: (N_t,) bool over the tracker's points: True for context points.
+        context_added: whether the context points have been drawn.
     """
 
     tracker: TrackerState
@@ -68,6 +75,8 @@ class StreamState:
     queries: Tensor = field(default_factory=lambda: torch.zeros(0, 3))
     point_ids: list[int] = field(default_factory=list)
     next_id: int = 0
+    is_context: Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.bool))
+    context_added: bool = False
 
 
 @dataclass
@@ -126,19 +135,10 @@ class OnlineTracker:
                 "the frame size is unknown: feed a frame first or pass frame_size to start()"
             )
         height, width = state.frame_size
-        new = torch.as_tensor(np.asarray(queries), dtype=torch.float32).reshape(-1, 3)
-        if not bool(torch.isfinite(new).all()):
-            raise ValueError("queries contain NaN or infinite values")
+        new = query_tensor(queries, 1, state.num_frames, height, width)[0]  # (N, 3)
         t = new[:, 0]
-        if bool((t != t.round()).any()) or bool((t <= state.last_decoded).any()):
-            raise ValueError(
-                f"query frames must be whole frame indices after frame {state.last_decoded}"
-            )
-        if state.num_frames is not None and bool((t >= state.num_frames).any()):
-            raise ValueError(f"query frame outside the declared {state.num_frames} frames")
-        x, y = new[:, 1], new[:, 2]
-        if bool(((x < -0.5) | (x > width - 0.5) | (y < -0.5) | (y > height - 0.5)).any()):
-            raise ValueError(f"query positions outside the {width}x{height} frame")
+        if bool((t <= state.last_decoded).any()):
+            raise ValueError(f"query frames must come after frame {state.last_decoded}")
         device = self.predictor.device
         add_points(
             self.model,
@@ -155,6 +155,7 @@ class OnlineTracker:
         state.next_id += new.shape[0]
         state.point_ids += ids
         state.queries = torch.cat((state.queries, new))
+        state.is_context = torch.cat((state.is_context, torch.zeros(len(ids), dtype=torch.bool)))
         return ids
 
     def remove_queries(self, state: StreamState, ids: list[int]) -> None:
@@ -163,7 +164,10 @@ class OnlineTracker:
         if unknown:
             raise ValueError(f"unknown point ids: {unknown}")
         keep = torch.tensor([pid not in set(ids) for pid in state.point_ids], dtype=torch.bool)
-        keep_points(state.tracker, keep.to(self.predictor.device))
+        keep_tracked = state.is_context.clone()
+        keep_tracked[~state.is_context] = keep  # context points stay
+        keep_points(state.tracker, keep_tracked.to(self.predictor.device))
+        state.is_context = state.is_context[keep_tracked]
         state.queries = state.queries[keep]
         state.point_ids = [pid for pid in state.point_ids if pid not in set(ids)]
 
@@ -237,7 +241,22 @@ class OnlineTracker:
         assert upcoming is not None
         return max(0, min(upcoming[0], state.num_seen - self.model.window_size))
 
+    def _add_context(self, state: StreamState) -> None:
+        """Draws the context points from the points known now (before the first window)."""
+        state.context_added = True
+        known = state.tracker.queries
+        padded = with_context(
+            known, self.predictor.context_points, self.predictor.input_size, state.num_frames
+        )
+        count = padded.start_frames.shape[1] - known.start_frames.shape[1]
+        if count:
+            add_points(self.model, state.tracker, QuerySet(*(q[:, -count:] for q in padded)))
+            state.is_context = torch.cat((state.is_context, torch.ones(count, dtype=torch.bool)))
+
     def _decode(self, state: StreamState, first: int, last: int) -> None:
+        if not state.context_added:
+            self._add_context(state)
+
         def source(a: int, b: int) -> FrameFeatures:
             memory = torch.stack([state.encoded[f] for f in range(a, b + 1)], dim=1)
             return FrameFeatures(memory, state.spatial_shapes)
@@ -250,8 +269,9 @@ class OnlineTracker:
         height, width = state.frame_size or (1, 1)
         tracker = state.tracker
         if bound > first:
-            positions = tracker.positions[-1].read(first, bound - 1)[0, ..., :2].sigmoid()
-            logits = tracker.visibility[-1].read(first, bound - 1)[0, ..., 1]
+            users = ~state.is_context.to(tracker.queries.positions.device)
+            positions = tracker.positions[-1].read(first, bound - 1)[0, :, users, :2].sigmoid()
+            logits = tracker.visibility[-1].read(first, bound - 1)[0, :, users, 1]
         else:
             positions = torch.zeros(0, len(state.point_ids), 2)
             logits = torch.zeros(0, len(state.point_ids))

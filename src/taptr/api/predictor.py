@@ -19,11 +19,12 @@ from typing import Any
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from taptr.api.inputs import as_unit_float, grid_queries, query_tensor, video_tensor
+from taptr.api.context import with_context
+from taptr.api.inputs import grid_queries, query_tensor, video_tensor
+from taptr.api.resize import resize_frames
 from taptr.geometry import normalized_to_pixels, pixels_to_normalized
 from taptr.model.frames import EncodedFrames
 from taptr.model.taptr import TAPTR, normalize_frames
@@ -46,6 +47,12 @@ class Predictor:
         device: where to run; default: CUDA if available, else CPU.
         dtype: floating type of the model and its inputs (float32; float64 for exact
             comparisons; bfloat16 or float16 on GPUs).
+        context_points: pad each video's queries with seeded context points up to this
+            many points before the model runs (`taptr.api.context`); they are never
+            returned. Default: the model config's (800 for the paper's weights, the points
+            per training clip for models trained by taptr); 0 turns it off.
+        source: the checkpoint's name or path, for messages.
+        notice: what to tell users about the model (the default model's fallback line).
     """
 
     def __init__(
@@ -56,14 +63,27 @@ class Predictor:
         visibility_threshold: float = 0.5,
         device: str | torch.device | None = None,
         dtype: torch.dtype = torch.float32,
+        context_points: int | None = None,
+        source: str | None = None,
+        notice: str | None = None,
     ) -> None:
         if device is None:
             device = "cuda" if torch.cuda.is_available() else "cpu"
         self.device = torch.device(device)
         self.dtype = dtype
         self.model = model.to(self.device, dtype).eval()
-        config_size = model.config.input_size if model.config is not None else (512, 512)
-        self.input_size = tuple(input_size or config_size)
+        config = model.config
+        self.input_size = tuple(input_size or (config.input_size if config else (512, 512)))
+        self.resize = config.resize if config else "bilinear"
+        if context_points is None:
+            context_points = config.context_points if config else 0
+        if isinstance(context_points, bool) or not isinstance(context_points, int):
+            raise ValueError(f"context_points must be a whole number, got {context_points!r}")
+        if context_points < 0:
+            raise ValueError(f"context_points must be >= 0, got {context_points}")
+        self.context_points = context_points
+        self.source = source
+        self.notice = notice
         if not 0 < visibility_threshold < 1:
             raise ValueError(f"visibility_threshold must lie in (0, 1), got {visibility_threshold}")
         self.visibility_threshold = visibility_threshold
@@ -72,19 +92,24 @@ class Predictor:
     def from_pretrained(
         cls, name_or_path: str | os.PathLike[str] | None = None, **kwargs: Any
     ) -> Predictor:
-        """A predictor for a checkpoint file or a model name (None: the bundled default).
+        """A predictor for a checkpoint file or a model name.
 
-        Without an explicit ``visibility_threshold``, a threshold stored in the file by
-        ``taptr calibrate`` is used (0.5 when there is none).
+        None gives the default model: the paper's weights (``taptrv2-official``, from the
+        Hugging Face cache or downloaded once), else the bundled ``taptr-small-synthetic``
+        with one warning (also kept in ``notice``). Without an explicit ``visibility_threshold``,
+        a threshold stored in the file by ``taptr calibrate`` is used (0.5 when there is none).
         """
-        from taptr.hub import resolve_model
+        from taptr.checkpoint import read_visibility_threshold
+        from taptr.hub import load_model
 
-        model = resolve_model(name_or_path)
-        if "visibility_threshold" not in kwargs:
-            stored = _stored_threshold(name_or_path)
+        choice = load_model(name_or_path)
+        if "visibility_threshold" not in kwargs and choice.path is not None:
+            stored = read_visibility_threshold(choice.path)
             if stored is not None:
                 kwargs["visibility_threshold"] = stored
-        return cls(model, **kwargs)
+        kwargs.setdefault("source", choice.name)
+        kwargs.setdefault("notice", choice.notice)
+        return cls(choice.model, **kwargs)
 
     @torch.no_grad()
     def track(
@@ -140,11 +165,13 @@ class Predictor:
     def prepare(self, frames: Tensor) -> Tensor:
         """Model input from frames: (F, 3, H, W) uint8 or in [0, 1] → (1, F, 3, H_m, W_m).
 
-        Resizing is bilinear with antialiasing, so downscaled videos do not alias.
+        Resized as the model's config says (`taptr.api.resize`: the official demo's Lanczos
+        for the paper's weights, antialiased bilinear for taptr's own models), then
+        ImageNet-normalised.
         """
-        chunk = as_unit_float(frames.to(self.device))
-        if tuple(chunk.shape[-2:]) != self.input_size:
-            chunk = F.interpolate(chunk, size=self.input_size, mode="bilinear", antialias=True)
+        if self.resize == "bilinear":  # runs on the model's device; Lanczos runs in Pillow
+            frames = frames.to(self.device)
+        chunk = resize_frames(frames, self.input_size, self.resize).to(self.device)
         return normalize_frames(chunk)[None].to(self.dtype)
 
     def _track_one(
@@ -184,6 +211,7 @@ class Predictor:
             pixels_to_normalized(queries[None, :, 1:], height, width).to(device, dtype),
             torch.ones(1, queries.shape[0], dtype=torch.bool, device=device),
         )
+        query_set = with_context(query_set, self.context_points, self.input_size, num_frames)
 
         def load(first: int, last: int) -> Tensor:
             if reverse:
@@ -193,19 +221,15 @@ class Predictor:
         output = run_windows(
             self.model, query_set, num_frames, EncodedFrames(self.model, load), dtype, on_window
         )
-        positions = normalized_to_pixels(output.positions[0].float(), height, width).cpu()
-        return positions, output.visibility_logits[0, ..., 1].float().cpu()
-
-
-def _stored_threshold(name_or_path: str | os.PathLike[str] | None) -> float | None:
-    """The calibrated threshold of a local or bundled checkpoint file, if it holds one."""
-    from taptr.checkpoint import read_visibility_threshold
-    from taptr.hub import BUNDLED, DEFAULT_MODEL, bundled_path
-
-    name = DEFAULT_MODEL if name_or_path is None else str(name_or_path)
-    path = name if os.path.isfile(name) else bundled_path(name) if name in BUNDLED else None
-    # published weights are the authors' files, which never hold a threshold
-    return None if path is None else read_visibility_threshold(path)
+        real = queries.shape[0]  # context points come after the user's and are dropped
+        positions = output.positions[0, :, :real].float()
+        logits = output.visibility_logits[0, :, :real, 1].float()
+        if not (bool(torch.isfinite(positions).all()) and not bool(logits.isnan().any())):
+            raise ValueError(
+                f"the model {self.source or '(unnamed)'} produced NaN or infinite tracks: its "
+                "weights are corrupt or were trained into divergence"
+            )
+        return normalized_to_pixels(positions, height, width).cpu(), logits.cpu()
 
 
 def _read_if_path(video: VideoInput) -> np.ndarray | Tensor:

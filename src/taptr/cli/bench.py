@@ -6,6 +6,14 @@ import argparse
 import shlex
 import sys
 
+from taptr.cli.options import (
+    add_device_argument,
+    check_at_least,
+    check_device,
+    check_input_size,
+    check_output_file,
+)
+
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     """Registers the subcommand."""
@@ -17,14 +25,47 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "window), each in its own process, and reports seconds per frame, a per-stage breakdown, "
         "peak memory and the agreement of their outputs.",
     )
-    parser.add_argument("--preset", nargs="+", default=["taptrv2"], help="one or more presets")
-    parser.add_argument("--frames", type=int, default=24)
-    parser.add_argument("--points", type=int, nargs="+", default=[800], help="one or more N")
-    parser.add_argument("--size", type=int, nargs=2, default=[512, 512], metavar=("H", "W"))
-    parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--device", default="cpu")
-    parser.add_argument("--dtype", choices=["float32", "bfloat16"], default="float32")
-    parser.add_argument("--path", choices=["both", "fast", "faithful"], default="both")
+    parser.add_argument(
+        "--preset",
+        nargs="+",
+        default=["taptrv2"],
+        help="one or more model presets, e.g. taptrv2 small (default: taptrv2)",
+    )
+    parser.add_argument(
+        "--frames", type=int, default=24, help="frames of the random video (default 24)"
+    )
+    parser.add_argument(
+        "--points",
+        type=int,
+        nargs="+",
+        default=[800],
+        metavar="N",
+        help="one or more numbers of query points (default 800)",
+    )
+    parser.add_argument(
+        "--size",
+        type=int,
+        nargs=2,
+        default=[512, 512],
+        metavar=("H", "W"),
+        help="frame size the model sees (default 512 512)",
+    )
+    parser.add_argument(
+        "--threads", type=int, default=2, help="CPU threads of each measured process (default 2)"
+    )
+    add_device_argument(parser, default="cpu")
+    parser.add_argument(
+        "--dtype",
+        choices=["float32", "bfloat16"],
+        default="float32",
+        help="dtype of weights and activations (default float32)",
+    )
+    parser.add_argument(
+        "--path",
+        choices=["both", "fast", "faithful"],
+        default="both",
+        help="which path to measure; both also compares their outputs (default both)",
+    )
     parser.add_argument("--flops", action="store_true", help="also count FLOPs (slower)")
     parser.add_argument("--json", metavar="FILE", help="write all results to this JSON file")
     parser.set_defaults(func=run)
@@ -42,6 +83,7 @@ def run(args: argparse.Namespace) -> int:
         write_json,
     )
 
+    check_bench_arguments(args)
     command = "taptr " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     rows, cases = [], []
     for preset in args.preset:
@@ -91,3 +133,18 @@ def run(args: argparse.Namespace) -> int:
             {"command": command, "machine": machine(), "peak_flops": rate, "cases": cases},
         )
     return 0
+
+
+def check_bench_arguments(args: argparse.Namespace) -> None:
+    """Checks the options before the first measured process starts."""
+    from taptr.api.inputs import check_num_points
+
+    check_device(args.device)
+    check_input_size(args.size, "--size", minimum=32)  # tiny presets are timed on small frames
+    check_at_least(args.frames, 1, "--frames")
+    check_at_least(args.threads, 1, "--threads")
+    for points in args.points:
+        check_at_least(points, 1, "--points")
+        check_num_points(points, f"--points {points}")
+    if args.json:
+        check_output_file(args.json, "--json")

@@ -6,6 +6,14 @@ import argparse
 import json
 from pathlib import Path
 
+from taptr.cli.options import (
+    add_device_argument,
+    check_at_least,
+    check_device,
+    check_input_path,
+    check_output_file,
+)
+
 DESCRIPTION = """\
 Tracks every video of a labelled set once, then scores visibility thresholds 0.05, 0.10,
 ..., 0.95 (and the model's current one) on those predictions with the TAP-Vid metric of
@@ -50,7 +58,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="candidate thresholds in (0, 1) (default: 0.05 0.10 ... 0.95)",
     )
     parser.add_argument("--max-videos", type=int, metavar="N", help="use only the first N videos")
-    parser.add_argument("--device", help="cpu, cuda, cuda:N, mps (default: cuda if available)")
+    add_device_argument(parser)
     parser.add_argument(
         "--out", required=True, help="checkpoint to write (may be a taptr --checkpoint file itself)"
     )
@@ -69,8 +77,12 @@ def run(args: argparse.Namespace) -> int:
     )
     from taptr.eval.datasets import open_dataset
 
-    if args.max_videos is not None and args.max_videos < 1:
-        raise ValueError("--max-videos must be at least 1")
+    check_at_least(args.max_videos, 1, "--max-videos")
+    check_device(args.device)
+    check_output_file(args.out)
+    check_input_path(args.root, "--root")
+    if args.json:
+        check_output_file(args.json, "--json")
     thresholds = tuple(args.thresholds) if args.thresholds else DEFAULT_THRESHOLDS
     predictor = Predictor.from_pretrained(args.checkpoint, device=args.device)
     predictions = predict_videos(

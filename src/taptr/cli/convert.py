@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from taptr.cli.options import check_output_file
+
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     """Registers the subcommand."""
@@ -23,6 +25,7 @@ def run(args: argparse.Namespace) -> int:
     """Converts and reports what was written."""
     from taptr.checkpoint import load_checkpoint, read_visibility_threshold, save_checkpoint
 
+    check_output_file(args.dst, "DST")
     model = load_checkpoint(args.src)
     threshold = read_visibility_threshold(args.src)  # a calibrated threshold travels along
     path = save_checkpoint(model, args.dst, half=args.half, visibility_threshold=threshold)

@@ -11,7 +11,7 @@ import importlib.util
 import ipaddress
 import sys
 
-from taptr.cli.track import add_model_arguments, load_predictor
+from taptr.cli.track import add_model_arguments, check_model_arguments, load_predictor
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -45,8 +45,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         default=defaults.max_points,
         help=f"most points one run may track (default {defaults.max_points})",
     )
-    add_model_arguments(parser)
-    parser.set_defaults(func=run, max_frames=defaults.max_frames)
+    add_model_arguments(parser, max_frames=defaults.max_frames)
+    parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -59,6 +59,7 @@ def run(args: argparse.Namespace) -> int:
     from taptr.demo.launch import private_workspace, serve
     from taptr.demo.settings import Limits
 
+    check_model_arguments(args)
     limits = Limits(max_frames=args.max_frames, max_side=args.max_side, max_points=args.max_points)
     if not _is_loopback(args.host):
         print(
@@ -67,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
     predictor = load_predictor(args)
-    model_name = args.checkpoint or "taptr-small-synthetic"
+    model_name = predictor.source or "custom"
     with private_workspace() as workspace:
         print(
             f"taptr demo: http://{args.host}:{args.port} (model {model_name}; temporary files in "

@@ -6,7 +6,8 @@ import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from taptr.cli.track import add_model_arguments, load_predictor
+from taptr.cli.options import check_at_least, check_output_file
+from taptr.cli.track import add_model_arguments, check_model_arguments, load_predictor
 
 if TYPE_CHECKING:
     import numpy as np
@@ -22,13 +23,24 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "--overlay onto it, hidden where the region is occluded.",
     )
     parser.add_argument("video", help="video file or folder of images")
-    parser.add_argument("--mask", required=True, help="PNG mask of the region on --query-frame")
+    parser.add_argument(
+        "--mask",
+        required=True,
+        help="mask of the region on --query-frame (an image of the video's size; inside = "
+        "pixels neither black nor transparent)",
+    )
     parser.add_argument(
         "--overlay", required=True, help="image (RGB or RGBA) to paste on the region"
     )
-    parser.add_argument("--query-frame", type=int, default=0, help="frame the mask was drawn on")
-    parser.add_argument("--stride", type=int, default=6, help="pixel spacing of the tracked points")
-    parser.add_argument("--opacity", type=float, default=1.0, help="overlay opacity in [0, 1]")
+    parser.add_argument(
+        "--query-frame", type=int, default=0, help="frame the mask was drawn on (default 0)"
+    )
+    parser.add_argument(
+        "--stride", type=int, default=6, help="pixel spacing of the tracked points (default 6)"
+    )
+    parser.add_argument(
+        "--opacity", type=float, default=1.0, help="overlay opacity in [0, 1] (default 1)"
+    )
     parser.add_argument("--out", default="edited.mp4", help="output mp4 (default: edited.mp4)")
     add_model_arguments(parser)
     parser.set_defaults(func=run)
@@ -36,24 +48,30 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Tracks the region and writes the edited video."""
+    from taptr.api.inputs import check_num_points
     from taptr.editing import overlay_region, read_mask, sample_region_queries
     from taptr.viz.video_io import read_video, video_info, write_video
 
+    # Everything that can fail on the arguments fails here, before the long run.
+    check_output_file(args.out, suffixes=(".mp4",))
+    check_model_arguments(args)
+    check_at_least(args.query_frame, 0, "--query-frame")
+    check_at_least(args.stride, 1, "--stride")
+    if not 0 <= args.opacity <= 1:
+        raise ValueError(f"--opacity must lie in [0, 1], got {args.opacity}")
     info = video_info(args.video)
-    video = read_video(args.video, max_frames=args.max_frames)
-    num_frames, height, width = video.shape[:3]
-    if not 0 <= args.query_frame < num_frames:
-        raise ValueError(f"--query-frame {args.query_frame} outside [0, {num_frames})")
-    mask = read_mask(args.mask)
-    if mask.shape != (height, width):
-        raise ValueError(
-            f"mask {args.mask} is {mask.shape[1]}x{mask.shape[0]}, the video is {width}x{height}"
-        )
+    mask = read_mask(args.mask, name="--mask", size=(info.height, info.width))
     overlay = (
         read_video(args.overlay)[0] if Path(args.overlay).is_dir() else _read_overlay(args.overlay)
     )
     queries = sample_region_queries(mask, args.query_frame, stride=args.stride)
-    result = load_predictor(args).track(video, queries, backward=True, progress=True)
+    check_num_points(len(queries), f"--mask {args.mask} with --stride {args.stride}")
+    predictor = load_predictor(args)
+    video = read_video(args.video, max_frames=args.max_frames)
+    num_frames = video.shape[0]
+    if not args.query_frame < num_frames:
+        raise ValueError(f"--query-frame {args.query_frame} outside [0, {num_frames})")
+    result = predictor.track(video, queries, backward=True, progress=True)
     edited = overlay_region(
         video,
         overlay,
@@ -70,11 +88,14 @@ def run(args: argparse.Namespace) -> int:
 
 def _read_overlay(path: str) -> np.ndarray:
     import cv2
+    import numpy as np
 
     if not Path(path).is_file():
-        raise FileNotFoundError(f"overlay image not found: {path}")
+        raise FileNotFoundError(f"--overlay {path}: file not found")
     image = cv2.imread(path, cv2.IMREAD_UNCHANGED)
     if image is None or image.ndim != 3 or image.shape[2] not in (3, 4):
-        raise ValueError(f"cannot read {path} as an RGB or RGBA image")
+        raise ValueError(f"--overlay {path}: not an RGB or RGBA image OpenCV can read")
+    if image.dtype != np.uint8:
+        raise ValueError(f"--overlay {path}: {image.dtype} pixels; save it with 8 bits a channel")
     code = cv2.COLOR_BGRA2RGBA if image.shape[2] == 4 else cv2.COLOR_BGR2RGB
     return cv2.cvtColor(image, code)

@@ -9,6 +9,14 @@ from __future__ import annotations
 import argparse
 import pickle
 
+from taptr.cli.options import (
+    add_device_argument,
+    check_at_least,
+    check_device,
+    check_input_path,
+    check_output_folder,
+)
+
 DESCRIPTION = """\
 Scores a tracker on a TAP-Vid set (or Kubric-layout sequences) with the TAP-Vid metrics:
 average Jaccard (AJ), average position accuracy (<δavg) and occlusion accuracy (OA).
@@ -58,8 +66,25 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument(
         "--checkpoint",
-        help="model checkpoint or name for --tracker taptr (default: the bundled model; "
-        "required by --protocol official)",
+        help="model checkpoint or name for --tracker taptr (default: the paper's weights "
+        "taptrv2-official, else the bundled model with a warning; required by --protocol "
+        "official)",
+    )
+    parser.add_argument(
+        "--context-points",
+        type=int,
+        default=None,
+        metavar="K",
+        help="standard protocol: pad each video's queries with seeded context points up to "
+        "K points (default: the model's, 800 for the paper's weights; 0: none)",
+    )
+    parser.add_argument(
+        "--points-per-call",
+        type=int,
+        default=None,
+        metavar="G",
+        help="standard protocol: track each video's queries in groups of G points, one "
+        "model call each, as a user clicking a few points would (default: all at once)",
     )
     parser.add_argument("--protocol", choices=PROTOCOLS, default="standard")
     parser.add_argument("--max-videos", type=int, metavar="N", help="score only the first N videos")
@@ -71,7 +96,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="write ground truth | prediction overlay videos of the K worst videos "
         "to OUT/overlays/",
     )
-    parser.add_argument("--device", help="cpu, cuda or cuda:N (default: cuda if available)")
+    add_device_argument(parser)
     parser.add_argument("--out", required=True, help="output folder")
     parser.set_defaults(func=run)
 
@@ -80,6 +105,13 @@ def run(args: argparse.Namespace) -> int:
     """Evaluates and prints the table from the main process."""
     from taptr.eval.runner import EvalConfig, run_evaluation
 
+    check_output_folder(args.out)
+    check_device(args.device)
+    check_input_path(args.root, "--root")
+    check_at_least(args.max_videos, 1, "--max-videos")
+    check_at_least(args.overlays, 0, "--overlays")
+    check_at_least(args.context_points, 0, "--context-points")
+    check_at_least(args.points_per_call, 1, "--points-per-call")
     config = EvalConfig(
         dataset=args.dataset,
         root=args.root,
@@ -90,6 +122,8 @@ def run(args: argparse.Namespace) -> int:
         max_videos=args.max_videos,
         device=args.device,
         overlays=args.overlays,
+        context_points=args.context_points,
+        points_per_call=args.points_per_call,
     )
     try:
         outcome = run_evaluation(config, args.out, progress=True)

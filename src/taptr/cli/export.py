@@ -12,6 +12,8 @@ from __future__ import annotations
 import argparse
 import time
 
+from taptr.cli.options import check_at_least, check_input_size, check_output_folder
+
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     """Registers the subcommand."""
@@ -41,10 +43,17 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         action="store_true",
         help="compare the graphs with the model on the sample clip and time both (CPU)",
     )
-    parser.add_argument("--check-frames", type=int, default=11, help="clip length for --check")
-    parser.add_argument("--check-points", type=int, default=8, help="points for --check")
     parser.add_argument(
-        "--repeats", type=int, default=1, help="--check times each runtime this often (best)"
+        "--check-frames", type=int, default=11, help="clip length for --check (default 11)"
+    )
+    parser.add_argument(
+        "--check-points", type=int, default=8, help="points for --check (default 8)"
+    )
+    parser.add_argument(
+        "--repeats",
+        type=int,
+        default=1,
+        help="--check times each runtime this often and keeps the best (default 1)",
     )
     parser.add_argument(
         "--threads", type=int, default=None, help="CPU threads for --check (both runtimes)"
@@ -61,6 +70,10 @@ def run(args: argparse.Namespace) -> int:
     from taptr.export.verify import compare
     from taptr.hub import resolve_model
 
+    check_output_folder(args.out)
+    check_input_size(args.input_size)
+    for flag in ("check_frames", "check_points", "repeats", "threads"):
+        check_at_least(getattr(args, flag), 1, "--" + flag.replace("_", "-"))
     if args.threads:
         torch.set_num_threads(args.threads)
     model = resolve_model(args.checkpoint)

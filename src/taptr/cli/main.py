@@ -1,8 +1,10 @@
 """Entry point of the ``taptr`` command: one subcommand per module of this package.
 
 Each subcommand module defines ``add_parser(subparsers)``, which registers its parser and
-sets ``func(args) -> int``. Expected failures (bad files, bad arguments) print one line and
-exit non-zero without a traceback; anything else is a bug and keeps its traceback.
+sets ``func(args) -> int``. Every failure prints one line ``taptr COMMAND: error: ...``:
+bad arguments and files exit with status 2, running out of memory and bugs with 1 (bugs
+say so, and ``-v`` shows their traceback), Ctrl-C with 130 and SIGTERM with 143; temporary
+files are removed on the way out.
 """
 
 from __future__ import annotations
@@ -11,8 +13,14 @@ import argparse
 import importlib
 import logging
 import pickle
+import re
+import signal
 import sys
-from collections.abc import Sequence
+import threading
+import traceback
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from typing import NoReturn
 
 COMMANDS = (
     "convert",
@@ -22,6 +30,8 @@ COMMANDS = (
     "eval",
     "train",
     "make-synthetic",
+    "make-photo-bench",
+    "analyze",
     "bench",
     "export",
     "demo",
@@ -35,41 +45,159 @@ USER_ERRORS: tuple[type[BaseException], ...] = (
     ValueError,
     KeyError,
     PermissionError,
+    IsADirectoryError,
+    NotADirectoryError,
+    FileExistsError,
     pickle.UnpicklingError,
     NotImplementedError,  # e.g. weights of a model this version cannot build
     ModuleNotFoundError,  # an optional extra (demo, hub, export) is not installed
 )
 
 
+DASH_VALUE_FLAGS = ("--points",)
+"""Options whose value may start with '-' (``--points -1,5,5`` is read as ``--points=-1,5,5``)."""
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised like Ctrl-C so that cleanup code runs (``finally`` blocks)."""
+
+
+class Parser(argparse.ArgumentParser):
+    """An ArgumentParser whose errors are one line that points to ``--help``.
+
+    Subparsers inherit the class, so every command's argument errors look alike.
+    """
+
+    def error(self, message: str) -> NoReturn:
+        """Prints ``PROG: error: MESSAGE (see PROG --help)`` and exits with status 2."""
+        hint = ""
+        flag = re.match(r"argument ([^:/ ]+).*: expected one argument", message)
+        if flag:
+            hint = f"; a value that starts with '-' is written {flag.group(1)}=VALUE"
+        self.exit(2, f"{self.prog}: error: {message}{hint} (see '{self.prog} --help')\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The top-level parser with every subcommand registered."""
     from taptr import __version__
 
-    parser = argparse.ArgumentParser(prog="taptr", description="TAPTRv2 point tracking.")
+    parser = Parser(prog="taptr", description="TAPTRv2 point tracking.")
     parser.add_argument("--version", action="version", version=f"taptr {__version__}")
-    parser.add_argument("-v", "--verbose", action="store_true", help="log progress details")
+    parser.add_argument(
+        "-v", "--verbose", action="store_true", help="log progress details and show tracebacks"
+    )
     subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name in COMMANDS:
         importlib.import_module(f"taptr.cli.{name.replace('-', '_')}").add_parser(subparsers)
+    for command in subparsers.choices.values():
+        # `taptr track ... -v` works too; SUPPRESS keeps a -v given before the command
+        command.add_argument(
+            "-v",
+            "--verbose",
+            action="store_true",
+            default=argparse.SUPPRESS,
+            help=argparse.SUPPRESS,
+        )
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Runs the command line; returns the exit status."""
     parser = build_parser()
-    args = parser.parse_args(argv)
-    logging.basicConfig(
-        level=logging.INFO if args.verbose else logging.WARNING, format="%(message)s"
-    )
+    args = parser.parse_args(join_dash_values(sys.argv[1:] if argv is None else list(argv)))
+    handler = logging.StreamHandler()
+    handler.setFormatter(LevelFormatter())
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, handlers=[handler])
+    prefix = f"taptr {args.command}: error:"
     try:
-        return int(args.func(args) or 0)
+        with sigterm_raises():
+            return int(args.func(args) or 0)
     except USER_ERRORS as error:
+        if args.verbose:
+            traceback.print_exc()
         message = error.args[0] if isinstance(error, KeyError) and error.args else error
-        print(f"taptr {args.command}: error: {message}", file=sys.stderr)
+        print(f"{prefix} {one_line(str(message))}", file=sys.stderr)
         return 2
+    except Terminated:
+        print("terminated", file=sys.stderr)
+        return 143
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    except Exception as error:  # the last resort: one line, not a traceback
+        if args.verbose:
+            traceback.print_exc()
+        print(f"{prefix} {describe_failure(error, args.command)}", file=sys.stderr)
+        return 1
+
+
+class LevelFormatter(logging.Formatter):
+    """Progress details as they are; warnings and errors as ``taptr: warning: ...``."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        """The message, prefixed with its level from WARNING up."""
+        text = super().format(record)
+        if record.levelno >= logging.WARNING:
+            return f"taptr: {record.levelname.lower()}: {text}"
+        return text
+
+
+def join_dash_values(argv: list[str]) -> list[str]:
+    """Joins ``--points -1,5,5`` into ``--points=-1,5,5``, which argparse would refuse."""
+    joined: list[str] = []
+    index = 0
+    while index < len(argv):
+        token = argv[index]
+        value = argv[index + 1] if index + 1 < len(argv) else ""
+        if token in DASH_VALUE_FLAGS and re.match(r"-[\d.]", value):
+            joined.append(f"{token}={value}")
+            index += 2
+        else:
+            joined.append(token)
+            index += 1
+    return joined
+
+
+def one_line(message: str) -> str:
+    """A message of several lines (a list of mismatched keys) as one: "; " between lines."""
+    parts = [line.strip() for line in message.splitlines() if line.strip()]
+    text = parts[0] if parts else ""
+    for part in parts[1:]:
+        text += (" " if text.endswith(":") else "; ") + part
+    return text
+
+
+def describe_failure(error: Exception, command: str) -> str:
+    """One line for an exception that is not a user error: out of memory, or a bug."""
+    text = " ".join(str(error).split())
+    if len(text) > 300:
+        text = text[:300] + " ..."
+    if isinstance(error, MemoryError) or "out of memory" in text.lower():
+        return (
+            f"out of memory ({type(error).__name__}: {text}); try fewer points or frames, "
+            "or a smaller --input-size"
+        )
+    return (
+        f"{type(error).__name__}: {text} (this is a bug in taptr; 'taptr -v {command} ...' "
+        "shows the traceback to report)"
+    )
+
+
+@contextmanager
+def sigterm_raises() -> Iterator[None]:
+    """Turns SIGTERM into `Terminated` for the block, so temporary files get removed."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def _raise(_signum: int, _frame: object) -> None:
+        raise Terminated()
+
+    previous = signal.signal(signal.SIGTERM, _raise)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
 
 
 if __name__ == "__main__":

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from taptr.cli.options import check_output_file
+
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     """Registers the subcommand."""
@@ -23,5 +25,6 @@ def run(args: argparse.Namespace) -> int:
     """Writes the clip."""
     from taptr.data.sample_video import write_sample_video
 
+    check_output_file(args.path, "PATH", suffixes=(".mp4",))
     print(f"wrote {write_sample_video(args.path)}")
     return 0

@@ -5,26 +5,48 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from taptr.cli.options import (
+    MAX_INPUT_SIDE,
+    MIN_INPUT_SIDE,
+    add_device_argument,
+    check_at_least,
+    check_device,
+    check_input_size,
+    check_output_folder,
+)
+from taptr.cli.points import parse_points, read_points_file
+
 if TYPE_CHECKING:
     from taptr.api.predictor import Predictor
+    from taptr.viz.video_io import VideoInfo
 
 logger = logging.getLogger(__name__)
 
 
-def add_model_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options shared by the commands that run a model."""
+def add_model_arguments(parser: argparse.ArgumentParser, max_frames: int | None = None) -> None:
+    """Options shared by the commands that run a model (``max_frames``: its default)."""
     parser.add_argument(
         "--checkpoint",
         default=None,
-        help="checkpoint file or model name (default: the bundled taptr-small-synthetic model)",
+        help="checkpoint file or model name (default: the paper's weights taptrv2-official "
+        "from the Hugging Face cache or downloaded once; without network, the bundled "
+        "taptr-small-synthetic, with a warning)",
     )
+    add_device_argument(parser)
     parser.add_argument(
-        "--device", default=None, help="cpu, cuda, cuda:1, mps (default: cuda if available)"
+        "--context-points",
+        type=int,
+        default=None,
+        metavar="K",
+        help="pad the queries with seeded context points up to K points, as the official "
+        "demo does; they are never written out; 0 turns it off (default: the model's, 800 "
+        "for the paper's weights)",
     )
     parser.add_argument(
         "--input-size",
@@ -32,11 +54,25 @@ def add_model_arguments(parser: argparse.ArgumentParser) -> None:
         nargs=2,
         metavar=("HEIGHT", "WIDTH"),
         default=None,
-        help="resolution the model sees (default: the model's, 512 512 for the paper model)",
+        help="resolution the model sees, each side in "
+        f"[{MIN_INPUT_SIDE}, {MAX_INPUT_SIDE}] (default: the model's, 512 512 for the paper "
+        "model)",
     )
     parser.add_argument(
-        "--max-frames", type=int, default=None, help="read at most this many frames"
+        "--max-frames",
+        type=int,
+        default=max_frames,
+        help=f"read at most this many frames (default: {max_frames or 'all'})",
     )
+
+
+def check_model_arguments(args: argparse.Namespace) -> None:
+    """Checks the options of `add_model_arguments` before any file is read."""
+    check_device(args.device)
+    check_input_size(args.input_size)
+    if args.context_points is not None:
+        check_at_least(args.context_points, 0, "--context-points")
+    check_at_least(args.max_frames, 1, "--max-frames")
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -45,20 +81,43 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "track",
         help="track points through a video",
         description="Tracks points given as (t, x, y) pixel queries (pixel centres at integers), "
-        "a grid, or a region mask, and writes tracks.npz, tracks.csv and overlay.mp4 to --out.",
+        "a grid, or a region mask, and writes tracks.npz, tracks.csv and overlay.mp4 to --out "
+        "(replacing an earlier run's files together, or not at all if interrupted). Frames are "
+        "decoded, tracked, drawn and encoded as they go, so memory does not grow with the "
+        "video (--backward holds the video in memory). Under torchrun, the videos are shared "
+        "out among the processes. One run tracks at most 100,000 points; the environment "
+        "variable TAPTR_MAX_POINTS raises that.",
     )
-    parser.add_argument("video", help="video file (mp4, webm, avi, gif, ...) or folder of images")
+    parser.add_argument(
+        "video",
+        nargs="+",
+        help="video files (mp4, webm, avi, gif, ...), folders of images, folders of videos, "
+        "or quoted glob patterns; several videos get one result folder each under --out, "
+        "and videos whose folder already holds a finished run are skipped",
+    )
     queries = parser.add_mutually_exclusive_group(required=True)
-    queries.add_argument("--points", help='queries "t,x,y;t,x,y;..." in pixels of the input video')
-    queries.add_argument("--points-file", help="text/csv file with one t,x,y query per line")
+    queries.add_argument(
+        "--points",
+        help='queries "t,x,y;t,x,y;..." in pixels of the input video: commas between the '
+        "numbers of a point, ';' between points",
+    )
+    queries.add_argument(
+        "--points-file",
+        help="UTF-8 text/csv file with one t,x,y query per line (commas or spaces; '#' "
+        "comments and a header line allowed)",
+    )
     queries.add_argument("--grid", type=int, metavar="N", help="track an N×N grid on --query-frame")
     queries.add_argument(
-        "--mask", help="track points sampled inside this mask (PNG, same size as the video)"
+        "--mask",
+        help="track points sampled inside this mask (an image of the video's size; inside = "
+        "pixels neither black nor transparent)",
     )
     parser.add_argument(
         "--query-frame", type=int, default=0, help="frame of --grid and --mask (default 0)"
     )
-    parser.add_argument("--mask-stride", type=int, default=8, help="pixel spacing of --mask points")
+    parser.add_argument(
+        "--mask-stride", type=int, default=8, help="pixel spacing of --mask points (default 8)"
+    )
     parser.add_argument(
         "--backward", action="store_true", help="also track before each query frame"
     )
@@ -68,52 +127,69 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(func=run)
 
 
-def parse_points(text: str) -> np.ndarray:
-    """``"t,x,y;t,x,y"`` → (N, 3) float32."""
-    rows = [chunk for chunk in text.replace("\n", ";").split(";") if chunk.strip()]
-    try:
-        points = np.array(
-            [[float(v) for v in row.replace(" ", ",").split(",") if v] for row in rows]
-        )
-    except ValueError:
-        raise ValueError(f"cannot read points {text!r}: expected 't,x,y;t,x,y;...'") from None
-    if points.ndim != 2 or points.shape[1] != 3:
-        raise ValueError(f"points must be triples t,x,y; got {text!r}")
-    return points.astype(np.float32)
+OUTPUT_NAMES = ("tracks.npz", "tracks.csv", "overlay.mp4", "trajectories.png")
+"""Every file track writes to --out; a new run replaces them as a set."""
 
 
-def read_points_file(path: str) -> np.ndarray:
-    """Queries from a file with one ``t,x,y`` per line (``#`` comments and a header allowed)."""
-    file = Path(path)
-    if not file.is_file():
-        raise FileNotFoundError(f"points file not found: {file}")
-    lines = [ln.split("#", 1)[0].strip() for ln in file.read_text().splitlines()]
-    lines = [ln for ln in lines if ln and not ln[0].isalpha()]
-    if not lines:
-        raise ValueError(f"{file} holds no t,x,y lines")
-    return parse_points(";".join(lines))
+def check_track_arguments(args: argparse.Namespace) -> None:
+    """Checks every option that can be checked without reading the video."""
+    from taptr.api.inputs import check_num_points
+
+    check_output_folder(args.out)
+    check_model_arguments(args)
+    check_at_least(args.query_frame, 0, "--query-frame")
+    check_at_least(args.mask_stride, 1, "--mask-stride")
+    if args.grid is not None:
+        check_at_least(args.grid, 1, "--grid")
+        check_num_points(args.grid * args.grid, f"--grid {args.grid}")
 
 
-def build_queries(args: argparse.Namespace, video: np.ndarray) -> np.ndarray:
-    """The (N, 3) queries the arguments ask for."""
-    from taptr.api.inputs import grid_queries
-    from taptr.editing import read_mask, sample_region_queries
-
-    num_frames, height, width = video.shape[:3]
+def listed_points(args: argparse.Namespace) -> np.ndarray | None:
+    """The queries of --points or --points-file (read before the video), else None."""
     if args.points is not None:
         return parse_points(args.points)
     if args.points_file is not None:
         return read_points_file(args.points_file)
+    return None
+
+
+def check_listed_points(
+    points: np.ndarray, info: VideoInfo, max_frames: int | None, flag: str
+) -> None:
+    """Checks listed queries against the video's size, before decoding the video.
+
+    Containers may state a wrong frame count, so queries at or beyond it are left to the
+    predictor, which checks them on the decoded frames.
+    """
+    from taptr.api.inputs import query_tensor
+
+    if info.num_frames is None:
+        return
+    num_frames = min(info.num_frames, max_frames or info.num_frames)
+    if float(points[:, 0].max()) >= num_frames:
+        return
+    try:
+        query_tensor(points, 1, num_frames, info.height, info.width)
+    except ValueError as error:
+        raise ValueError(f"{flag}: {error}") from None
+
+
+def build_queries(args: argparse.Namespace, num_frames: int, height: int, width: int) -> np.ndarray:
+    """The (N, 3) queries the arguments ask for, on a video of that many frames and size."""
+    from taptr.api.inputs import check_num_points, grid_queries
+    from taptr.editing import read_mask, sample_region_queries
+
+    listed = listed_points(args)
+    if listed is not None:
+        return listed
     if not 0 <= args.query_frame < num_frames:
         raise ValueError(f"--query-frame {args.query_frame} outside [0, {num_frames})")
     if args.grid is not None:
-        return grid_queries(args.grid, args.query_frame, height, width).numpy()
-    mask = read_mask(args.mask)
-    if mask.shape != (height, width):
-        raise ValueError(
-            f"mask {args.mask} is {mask.shape[1]}x{mask.shape[0]}, the video is {width}x{height}"
-        )
-    return sample_region_queries(mask, args.query_frame, stride=args.mask_stride)
+        return grid_queries(args.grid, args.query_frame, height, width, name="--grid").numpy()
+    mask = read_mask(args.mask, name="--mask", size=(height, width))
+    queries = sample_region_queries(mask, args.query_frame, stride=args.mask_stride)
+    check_num_points(len(queries), f"--mask {args.mask} with --mask-stride {args.mask_stride}")
+    return queries
 
 
 def load_predictor(args: argparse.Namespace) -> Predictor:
@@ -121,49 +197,242 @@ def load_predictor(args: argparse.Namespace) -> Predictor:
     from taptr.api.predictor import Predictor
 
     size = tuple(args.input_size) if args.input_size else None
-    return Predictor.from_pretrained(args.checkpoint, device=args.device, input_size=size)
+    return Predictor.from_pretrained(
+        args.checkpoint, device=args.device, input_size=size, context_points=args.context_points
+    )
 
 
 def run(args: argparse.Namespace) -> int:
-    """Tracks and writes the three outputs."""
-    from taptr.viz.draw import draw_tracks, draw_trajectories
-    from taptr.viz.export import save_tracks_csv, save_tracks_npz
-    from taptr.viz.video_io import read_video, video_info, write_video
+    """Tracks every video named and writes its three outputs; prints one summary."""
+    from taptr.cli.videos import expand_videos, is_complete, my_share, result_folders
+    from taptr.distributed import gather_objects, join_process_group
 
-    info = video_info(args.video)
-    video = read_video(args.video, max_frames=args.max_frames)
-    queries = build_queries(args, video)
+    # Everything that can fail on the arguments fails here, before the long run.
+    check_track_arguments(args)
+    listed = listed_points(args)
+    videos = expand_videos(args.video)
+    folders = result_folders(videos, Path(args.out))
+    mine = [
+        i
+        for i in my_share(len(videos))
+        if len(videos) == 1 or not is_complete(folders[i], FINISHED)
+    ]
+    if len(videos) == 1:
+        info = {0: check_video(args, videos[0], listed)}  # before the model loads
     predictor = load_predictor(args)
-    result = predictor.track(video, queries, backward=args.backward, progress=True)
+    joined = join_process_group(predictor.device.type == "cuda")
+    outcomes = [
+        (str(videos[i]), "skipped: already done", None)
+        for i in my_share(len(videos))
+        if i not in mine
+    ]
+    try:
+        for index in mine:
+            video, folder = videos[index], folders[index]
+            try:
+                checked = info[index] if len(videos) == 1 else check_video(args, video, listed)
+                counts = track_video(args, predictor, video, folder, listed, checked)
+            except (ValueError, FileNotFoundError) as error:
+                if len(videos) == 1:
+                    raise
+                outcomes.append((str(video), f"failed: {error}", None))
+                continue
+            outcomes.append((str(video), "tracked", counts))
+        everyone = [o for part in gather_objects(outcomes) for o in part]
+    finally:
+        if joined:
+            import torch.distributed as dist
+
+            dist.destroy_process_group()
+    if int(os.environ.get("RANK", "0")) == 0 and len(videos) > 1:
+        _print_summary(everyone, Path(args.out))
+    return 0 if not any(status.startswith("failed") for _, status, _ in everyone) else 2
+
+
+FINISHED = ("tracks.npz", "tracks.csv", "overlay.mp4")
+"""The files every finished run leaves (written together at its end)."""
+
+
+def check_video(args: argparse.Namespace, video: Path, listed: np.ndarray | None) -> VideoInfo:
+    """Reads a video's header and checks the queries and mask against it."""
+    from taptr.editing import read_mask
+    from taptr.viz.video_io import video_info
+
+    info = video_info(video)
+    if listed is not None:
+        flag = "--points" if args.points is not None else f"--points-file {args.points_file}"
+        check_listed_points(listed, info, args.max_frames, flag)
+    if args.mask is not None:
+        read_mask(args.mask, name="--mask", size=(info.height, info.width))
+    return info
+
+
+def track_video(
+    args: argparse.Namespace,
+    predictor: Predictor,
+    video: Path,
+    out: Path,
+    listed: np.ndarray | None,
+    info: VideoInfo,
+) -> tuple[int, int]:
+    """Tracks one video into ``out``; returns (frames, points)."""
+    declared = info.num_frames
+    if declared is not None and args.max_frames is not None:
+        declared = min(declared, args.max_frames)
+    if declared is not None and not args.backward:
+        queries = (
+            listed if listed is not None else build_queries(args, declared, info.height, info.width)
+        )
+        try:
+            return _track_streaming(args, predictor, video, out, queries, info, declared)
+        except FrameCountError as error:
+            logger.warning("%s; tracking it in memory instead", error)
+    return _track_in_memory(args, predictor, video, out, listed, info)
+
+
+class FrameCountError(ValueError):
+    """The video decodes to a different number of frames than its container says."""
+
+
+def _track_streaming(
+    args: argparse.Namespace,
+    predictor: Predictor,
+    video: Path,
+    out: Path,
+    queries: np.ndarray,
+    info: VideoInfo,
+    num_frames: int,
+) -> tuple[int, int]:
+    """Decodes, tracks, draws and encodes frame by frame; holds about one window of frames."""
+    from tqdm.auto import tqdm
+
+    from taptr.api.inputs import query_tensor
+    from taptr.api.streaming import draw_final, track_frames
+    from taptr.files import result_folder
+    from taptr.viz.video_io import iter_frames, write_video
+
+    kept: list[tuple[np.ndarray, np.ndarray]] = []
+    last_frame: list[np.ndarray] = [np.zeros(0, np.uint8)]
+    # checked before the first frame is decoded, with the predictor's own messages
+    queries = query_tensor(queries, 1, num_frames, info.height, info.width)[0].numpy()
+
+    def tracked():
+        frames = iter_frames(video, max_frames=args.max_frames)
+        with tqdm(total=num_frames, desc="tracking", unit="frame") as bar:
+            try:
+                for batch in track_frames(predictor, frames, queries, num_frames=num_frames):
+                    # tracks only, and a copy of the newest frame: a view would keep the
+                    # whole batch of frames alive
+                    kept.append((batch.tracks, batch.visibility))
+                    last_frame[0] = batch.frames[-1].copy()
+                    bar.update(len(batch.frames))
+                    yield batch
+            except ValueError as error:
+                if "declared" in str(error):  # the container's frame count was wrong
+                    raise FrameCountError(f"{video}: {error}") from None
+                raise
+
+    with result_folder(out, OUTPUT_NAMES) as staging:
+        write_video(staging / "overlay.mp4", draw_final(tracked(), queries), info.fps or 24.0)
+        tracks = np.concatenate([part[0] for part in kept])
+        visibility = np.concatenate([part[1] for part in kept])
+        _write_tracks(args, predictor, video, staging, tracks, visibility, queries, info)
+        if args.trajectories:
+            _write_trajectories(staging, last_frame[0], tracks, visibility, queries[:, 0])
+    _print_done(out, len(queries), len(tracks))
+    return len(tracks), len(queries)
+
+
+def _track_in_memory(
+    args: argparse.Namespace,
+    predictor: Predictor,
+    video: Path,
+    out: Path,
+    listed: np.ndarray | None,
+    info: VideoInfo,
+) -> tuple[int, int]:
+    """Reads the whole video first (needed by --backward and by unknown frame counts)."""
+    from taptr.files import result_folder
+    from taptr.viz.draw import draw_tracks
+    from taptr.viz.video_io import read_video, write_video
+
+    frames = read_video(video, max_frames=args.max_frames)
+    queries = listed if listed is not None else build_queries(args, *frames.shape[:3])
+    result = predictor.track(frames, queries, backward=args.backward, progress=True)
     tracks = result.tracks[0].numpy()
     visibility = result.visibility[0].numpy()
-    out = Path(args.out)
+    query_frames = None if args.backward else queries[:, 0].astype(np.int64)
+    with result_folder(out, OUTPUT_NAMES) as staging:
+        _write_tracks(args, predictor, video, staging, tracks, visibility, queries, info)
+        overlay = draw_tracks(frames, tracks, visibility, query_frames=query_frames)
+        write_video(staging / "overlay.mp4", overlay, info.fps or 24.0)
+        if args.trajectories:
+            _write_trajectories(staging, frames[-1], tracks, visibility, query_frames)
+    _print_done(out, len(queries), len(frames))
+    return len(frames), len(queries)
+
+
+def _write_tracks(
+    args: argparse.Namespace,
+    predictor: Predictor,
+    video: Path,
+    staging: Path,
+    tracks: np.ndarray,
+    visibility: np.ndarray,
+    queries: np.ndarray,
+    info: VideoInfo,
+) -> None:
+    from taptr.viz.export import save_tracks_csv, save_tracks_npz
+
     metadata = {
-        "video": str(args.video),
-        "num_frames": int(video.shape[0]),
-        "height": int(video.shape[1]),
-        "width": int(video.shape[2]),
+        "video": str(video),
+        "num_frames": int(tracks.shape[0]),
+        "height": int(info.height),
+        "width": int(info.width),
         "fps": info.fps,
-        "model": args.checkpoint or "taptr-small-synthetic",
+        "model": predictor.source,
         "input_size": list(predictor.input_size),
+        "context_points": predictor.context_points,
         "backward": bool(args.backward),
         "coordinates": "(x, y) pixels, pixel centres at integers",
     }
-    save_tracks_npz(out / "tracks.npz", tracks, visibility, queries, metadata)
-    save_tracks_csv(out / "tracks.csv", tracks, visibility)
-    query_frames = None if args.backward else queries[:, 0].astype(np.int64)
-    overlay = draw_tracks(video, tracks, visibility, query_frames=query_frames)
-    write_video(out / "overlay.mp4", overlay, info.fps or 24.0)
-    if args.trajectories:
-        from taptr.viz.video_io import write_image
-
-        write_image(
-            out / "trajectories.png",
-            draw_trajectories(video[-1], tracks, visibility, query_frames=query_frames),
-        )
-    print(
-        f"tracked {len(queries)} points through {video.shape[0]} frames; wrote "
-        f"{out / 'tracks.npz'}, {out / 'tracks.csv'}, {out / 'overlay.mp4'}"
-    )
+    save_tracks_npz(staging / "tracks.npz", tracks, visibility, queries, metadata)
+    save_tracks_csv(staging / "tracks.csv", tracks, visibility)
     logger.info("metadata: %s", json.dumps(metadata))
-    return 0
+
+
+def _write_trajectories(
+    staging: Path,
+    frame: np.ndarray,
+    tracks: np.ndarray,
+    visibility: np.ndarray,
+    query_frames: np.ndarray | None,
+) -> None:
+    from taptr.viz.draw import draw_trajectories
+    from taptr.viz.video_io import write_image
+
+    starts = None if query_frames is None else np.asarray(query_frames).astype(np.int64)
+    write_image(
+        staging / "trajectories.png",
+        draw_trajectories(frame, tracks, visibility, query_frames=starts),
+    )
+
+
+def _print_done(out: Path, points: int, frames: int) -> None:
+    print(
+        f"tracked {points} points through {frames} frames; wrote "
+        f"{out / 'tracks.npz'}, {out / 'tracks.csv'}, {out / 'overlay.mp4'}",
+        flush=True,
+    )
+
+
+def _print_summary(outcomes: list, out: Path) -> None:
+    tracked = sum(status == "tracked" for _, status, _ in outcomes)
+    skipped = sum(status.startswith("skipped") for _, status, _ in outcomes)
+    failed = [(video, status) for video, status, _ in outcomes if status.startswith("failed")]
+    print(
+        f"{len(outcomes)} videos: {tracked} tracked, {skipped} already done, {len(failed)} "
+        f"failed; results in {out}/<video name>/"
+    )
+    for video, status in failed:
+        print(f"  {video}: {status}")

@@ -11,6 +11,8 @@ import logging
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from taptr.cli.options import check_output_folder
+
 if TYPE_CHECKING:
     from taptr.train.config import TrainConfig
 
@@ -58,9 +60,10 @@ def _config(args: argparse.Namespace) -> TrainConfig:
     if args.config:
         base = read_config_file(args.config)
     elif args.resume:
-        base = read_file(args.resume).get("train_config")
-        if base is None:
-            raise ValueError(f"{args.resume} is not a taptr training checkpoint")
+        data = read_file(args.resume)
+        base = data.get("train_config") if isinstance(data, dict) else None
+        if not isinstance(base, dict):
+            raise ValueError(f"--resume {args.resume} is not a taptr training checkpoint")
     else:
         base = {}
     return from_dict(merge(base, parse_overrides(overrides)))
@@ -71,12 +74,15 @@ def run(args: argparse.Namespace) -> int:
     from taptr.train.checkpoint import CHECKPOINT_NAME
     from taptr.train.loop import NonFiniteLossError, train
 
+    if args.out:
+        check_output_folder(args.out)
     config = _config(args)
+    check_output_folder(config.out_dir, "out_dir")
     resume = None
     if args.resume is not None:
         resume = Path(args.resume or Path(config.out_dir) / CHECKPOINT_NAME)
         if not resume.is_file():
-            raise FileNotFoundError(f"no checkpoint to resume from: {resume}")
+            raise FileNotFoundError(f"--resume: no checkpoint to resume from: {resume}")
     logging.getLogger("taptr.train").setLevel(logging.INFO)  # progress without -v
     try:
         final = train(config, resume=resume)

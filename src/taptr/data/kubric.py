@@ -23,8 +23,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from taptr import limits
 from taptr.data.safe_pickle import load_npy
 from taptr.files import atomic_path
+from taptr.image_guard import image_size
 from taptr.types import TrackingSample
 
 FRAMES_DIR = "frames"
@@ -73,8 +75,16 @@ def _frame_paths(folder: Path) -> list[Path]:
 
 
 def _read_frames(paths: list[Path], bgr: bool) -> np.ndarray:
+    size = image_size(paths[0], str(paths[0]))
+    if size is not None:  # an unreadable first frame is reported by the loop below
+        needed = len(paths) * size[0] * size[1] * 3
+        what = f"{paths[0].parent}: {len(paths)} frames of {size[1]}x{size[0]}"
+        limits.check("video_bytes", needed, what)
     frames = []
     for path in paths:
+        # every header is checked before OpenCV decodes (its own bomb limit is 2**30 pixels)
+        if size is not None and image_size(path, str(path)) not in (size, None):
+            raise ValueError(f"{path}: size differs from the first frame's {size[1]}x{size[0]}")
         image = cv2.imread(str(path), cv2.IMREAD_COLOR)
         if image is None:
             raise ValueError(f"{path}: not a readable image")
@@ -97,8 +107,11 @@ def _read_annotations(path: Path, num_frames: int) -> tuple[np.ndarray, np.ndarr
     if not isinstance(data, dict) or not {"coords", "visibility"} <= set(data):
         keys = sorted(map(str, data)) if isinstance(data, dict) else type(data).__name__
         raise ValueError(f"{path}: expected a dict with 'coords' and 'visibility', got {keys}")
-    coords = np.asarray(data["coords"])
-    occluded = np.asarray(data["visibility"])
+    try:
+        coords = np.asarray(data["coords"])
+        occluded = np.asarray(data["visibility"])
+    except (ValueError, TypeError) as error:  # ragged lists
+        raise ValueError(f"{path}: 'coords' and 'visibility' must be arrays ({error})") from None
     if coords.ndim != 3 or coords.shape[1:] != (num_frames, 2):
         raise ValueError(
             f"{path}: 'coords' must be (N, {num_frames}, 2) for {num_frames} frames, "
@@ -108,9 +121,15 @@ def _read_annotations(path: Path, num_frames: int) -> tuple[np.ndarray, np.ndarr
         raise ValueError(
             f"{path}: 'visibility' must be (N, T) = {coords.shape[:2]}, got {occluded.shape}"
         )
-    if not np.issubdtype(coords.dtype, np.number) or not np.isfinite(coords).all():
-        raise ValueError(f"{path}: 'coords' must hold finite numbers")
-    return coords.astype(np.float32), occluded.astype(bool)
+    if coords.dtype.kind not in "biuf" or not np.isfinite(coords).all():
+        raise ValueError(f"{path}: 'coords' must hold finite real numbers")
+    if occluded.dtype.kind not in "biuf":
+        raise ValueError(f"{path}: 'visibility' must hold booleans, got dtype {occluded.dtype}")
+    with np.errstate(over="ignore"):
+        coords = coords.astype(np.float32)
+    if not np.isfinite(coords).all():  # finite in float64, beyond float32's range
+        raise ValueError(f"{path}: 'coords' holds values too large for pixel coordinates")
+    return coords, occluded.astype(bool)
 
 
 def read_sequence(folder: str | os.PathLike[str], *, bgr: bool = False) -> TrackingSample:

@@ -18,17 +18,19 @@ coordinates meet taptr's pixel convention (pixel centres at integers).
 from __future__ import annotations
 
 import functools
-import io
 import logging
+import math
 import os
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
-from PIL import Image
+from PIL import Image  # noqa: F401  (tests count the frames opened through it)
 
+from taptr import limits
 from taptr.data.safe_pickle import load_pickle
+from taptr.image_guard import open_image, to_rgb
 from taptr.types import TrackingSample
 
 logger = logging.getLogger(__name__)
@@ -100,19 +102,76 @@ def find_tapvid_files(dataset: str, root: str | os.PathLike[str]) -> list[Path]:
     raise FileNotFoundError(f"no TAP-Vid {dataset} file at {root} (looked for {looked})")
 
 
-def decode_frames(frames: Any) -> np.ndarray:
-    """(T, H, W, 3) uint8 frames from a uint8 array or a sequence of JPEG-encoded frames."""
-    if isinstance(frames, np.ndarray) and frames.dtype == np.uint8:
+def decode_frames(frames: Any, label: str = "video") -> np.ndarray:
+    """(T, H, W, 3) uint8 frames from a uint8 array or a sequence of encoded (png/jpg) frames.
+
+    The frame count and the decoded size (T × H × W × 3 bytes, from the first frame's
+    header) are checked against the ``video_frames`` and ``video_bytes`` limits of
+    `taptr.limits` before any frame is decoded, and every frame's header before it is.
+
+    Args:
+        frames: the item's ``video`` entry.
+        label: names the video in messages.
+
+    Raises:
+        ValueError: malformed or undecodable frames, frames of different sizes, or a video
+            over a limit.
+    """
+    if isinstance(frames, np.ndarray) and frames.dtype == np.uint8 and frames.ndim == 4:
+        limits.check("video_frames", len(frames), f"{label}: {len(frames):,} frames")
         return frames
-    decoded = []
-    for frame in frames:
-        with Image.open(io.BytesIO(bytes(frame))) as image:
-            decoded.append(np.asarray(image.convert("RGB")))
-    return np.stack(decoded)
+    if not isinstance(frames, (list, tuple, np.ndarray)) or not len(frames):
+        raise ValueError(f"{label}: expected (T, H, W, 3) uint8 frames or a list of png/jpg frames")
+    limits.check("video_frames", len(frames), f"{label}: {len(frames):,} frames")
+    encoded = [_encoded_frame(frame, f"{label} frame {t}") for t, frame in enumerate(frames)]
+    video = None
+    for t, data in enumerate(encoded):
+        with open_image(data, f"{label} frame {t}") as image:
+            size = (image.size[1], image.size[0], 3)
+            if video is None:
+                # the first header tells the size of every frame: bound the whole video
+                needed = len(encoded) * math.prod(size)
+                what = f"{label}: {len(encoded)} frames of {size[1]}x{size[0]}"
+                limits.check("video_bytes", needed, what)
+                video = np.empty((len(encoded), *size), dtype=np.uint8)
+            elif size != video.shape[1:]:
+                raise ValueError(
+                    f"{label} frame {t}: {size[1]}x{size[0]}, the first frame is "
+                    f"{video.shape[2]}x{video.shape[1]}"
+                )
+            video[t] = to_rgb(image, f"{label} frame {t}")
+    if video is None:
+        raise ValueError(f"{label}: no frames")
+    return video
+
+
+def _encoded_frame(frame: Any, label: str) -> bytes:
+    """The bytes of one encoded frame; refuses anything else (``bytes(n)`` would allocate)."""
+    if isinstance(frame, np.ndarray) and frame.dtype == np.uint8 and frame.ndim == 1:
+        return frame.tobytes()
+    if isinstance(frame, (bytes, bytearray)):
+        return bytes(frame)
+    raise ValueError(f"{label}: an encoded frame must be bytes, got {type(frame).__name__}")
+
+
+def _numbers(value: Any, label: str, key: str) -> np.ndarray:
+    """``value`` as a float64 array of finite real numbers."""
+    try:
+        array = np.asarray(value)
+    except (ValueError, TypeError) as error:  # ragged lists
+        raise ValueError(f"{label}: {key!r} is not an array ({error})") from None
+    if array.dtype.kind not in "biuf":
+        raise ValueError(f"{label}: {key!r} must hold real numbers, got dtype {array.dtype}")
+    array = array.astype(np.float64)
+    if not np.isfinite(array).all():
+        raise ValueError(f"{label}: {key!r} holds non-finite values (NaN or inf)")
+    return array
 
 
 def item_to_sample(item: Any, name: str, source: str) -> TrackingSample:
     """Builds the `TrackingSample` of one item; tracks in pixels, visibility not occlusion.
+
+    The ground truth is checked (shapes, finite numbers) before the frames are decoded.
 
     Args:
         item: the ``{"video", "points", "occluded"}`` mapping of the file.
@@ -122,24 +181,31 @@ def item_to_sample(item: Any, name: str, source: str) -> TrackingSample:
     label = f"{source}: video {name!r}"
     if not isinstance(item, Mapping) or not {"video", "points", "occluded"} <= set(item):
         raise ValueError(f"{label} is not a {{'video', 'points', 'occluded'}} mapping")
+    points = _numbers(item["points"], label, "points")
+    occluded = _numbers(item["occluded"], label, "occluded").astype(bool)
     try:
-        video = decode_frames(item["video"])
-    except (OSError, TypeError, ValueError) as error:
-        raise ValueError(f"{label}: cannot decode the frames ({error})") from None
-    points = np.asarray(item["points"], dtype=np.float64)
-    occluded = np.asarray(item["occluded"], dtype=bool)
-    if video.ndim != 4 or points.ndim != 3 or points.shape[2] != 2:
+        num_frames = len(item["video"])
+    except TypeError:
+        raise ValueError(f"{label}: 'video' is a {type(item['video']).__name__}") from None
+    if num_frames < 1:
+        raise ValueError(f"{label}: no frames")
+    if (
+        points.ndim != 3
+        or points.shape[1:] != (num_frames, 2)
+        or occluded.shape != points.shape[:2]
+    ):
         raise ValueError(
-            f"{label}: expected video (T, H, W, 3) and points (N, T, 2), got "
-            f"{video.shape} and {points.shape}"
-        )
-    if occluded.shape != points.shape[:2] or points.shape[1] != video.shape[0]:
-        raise ValueError(
-            f"{label}: {video.shape[0]} frames but points {points.shape} and occluded "
+            f"{label}: {num_frames} frames but points {points.shape} and occluded "
             f"{occluded.shape} (expected (N, T, 2) and (N, T))"
         )
+    video = decode_frames(item["video"], label)
+    if video.ndim != 4 or video.shape[3] != 3 or not video.size:
+        raise ValueError(f"{label}: expected a video (T, H, W, 3), got {video.shape}")
     height, width = video.shape[1:3]
-    tracks = raster_to_pixels(points.transpose(1, 0, 2), height, width).astype(np.float32)
+    with np.errstate(over="ignore"):
+        tracks = raster_to_pixels(points.transpose(1, 0, 2), height, width).astype(np.float32)
+    if not np.isfinite(tracks).all():  # finite in float64, beyond float32's range
+        raise ValueError(f"{label}: 'points' holds values too large for pixel coordinates")
     return TrackingSample(video, tracks, ~occluded.T, name)
 
 

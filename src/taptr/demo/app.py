@@ -214,7 +214,9 @@ def build_app(
     ) as demo:
         gr.Markdown(
             "# taptr: track any point\n"
-            f"Model: **{model_name or 'custom'}**. Limits: {limits.max_frames} frames, "
+            f"Model: **{model_name or 'custom'}**. "
+            + (f"*Note: {predictor.notice}* " if predictor.notice else "")
+            + f"Limits: {limits.max_frames} frames, "
             f"{limits.max_side} px on the longer side, {limits.max_points} points. "
             "Coordinates are (x, y) pixels with pixel centres at integers."
         )

@@ -32,13 +32,18 @@ logger = logging.getLogger(__name__)
 def private_workspace() -> Iterator[Path]:
     """A new temporary folder for one server's files, removed on exit.
 
-    Points Gradio's upload cache at ``<workspace>/uploads`` and turns its analytics off;
-    both settings must be in the environment before Gradio is imported.
+    Points Gradio's upload cache at ``<workspace>/uploads`` (and matplotlib's cache, which
+    Gradio imports when installed, at ``<workspace>/matplotlib``) and turns Gradio's
+    analytics off; these settings must be in the environment before Gradio is imported.
     """
     workspace = Path(tempfile.mkdtemp(prefix="taptr-demo-"))
-    previous = {key: os.environ.get(key) for key in ("GRADIO_TEMP_DIR", "GRADIO_ANALYTICS_ENABLED")}
+    keys = ("GRADIO_TEMP_DIR", "GRADIO_ANALYTICS_ENABLED", "MPLCONFIGDIR")
+    previous = {key: os.environ.get(key) for key in keys}
     os.environ["GRADIO_TEMP_DIR"] = str(workspace / "uploads")
     os.environ["GRADIO_ANALYTICS_ENABLED"] = "False"
+    # Gradio imports matplotlib when it is installed, which would write its font cache
+    # into the user's home; keep it with the server's other files
+    os.environ.setdefault("MPLCONFIGDIR", str(workspace / "matplotlib"))
     if "gradio" in sys.modules:
         logger.warning(
             "gradio was imported before the demo's workspace was set: uploads go to its own "

@@ -16,12 +16,12 @@ coordinates are TAP-Vid's normalised values × 255:
 from __future__ import annotations
 
 import functools
-from typing import NamedTuple
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
+from taptr.api.context import PREFIX_FRAMES, ContextPoints, draw_context
 from taptr.eval.queries import QueryPoints
 from taptr.eval.tracker import query_frames, track_both_ways
 from taptr.geometry import normalized_to_pixels, pixels_to_normalized
@@ -31,62 +31,27 @@ from taptr.official import official_forward
 NUM_QUERIES = 800
 """Points per pass after padding (the official ``num_queries_per_video_eval``)."""
 
-PADDING_BOUNDS = (16, 239)
-"""Inclusive range of padded coordinates: a margin of 256 // 16 px inside the 256 frame."""
-
-MAX_OCCLUDED_PREFIX = 12
-"""Padded points are occluded on their first r frames, r drawn from [0, 12)."""
-
-
-class Padding(NamedTuple):
-    """Distractor points added to a query set.
-
-    Attributes:
-        positions: (K, 2) float64 static (x, y) in the protocol's 256-frame units.
-        occluded_prefix: (K,) int64 number of leading frames on which each point is occluded.
-    """
-
-    positions: np.ndarray
-    occluded_prefix: np.ndarray
+EVAL_FRAME = (256, 256)
+"""(H, W) of the frames the evaluation pads in: padded points lie in [16, 239]."""
 
 
 def official_padding(
     frame0_positions: np.ndarray, num_frames: int, num_queries: int = NUM_QUERIES
-) -> Padding:
-    """The official padding of n real points to ``num_queries`` (TAPTRv2-SPEC.md §4.2).
+) -> ContextPoints:
+    """The evaluation's padding of n real points to ``num_queries`` (TAPTRv2-SPEC.md §4.2).
 
-    With K = num_queries − n and a fresh seed-0 legacy numpy generator: start a list with
-    the real points' frame-0 positions; while it is shorter than K, draw an integer point in
-    `PADDING_BOUNDS` and keep it if it lies at least 1 away from every listed point; return
-    the last K entries (so the real frame-0 positions are among the padding when n < K),
-    then draw K occluded-prefix lengths in [0, 12).
-
-    The official code fails on videos shorter than 12 frames, where a point can be occluded
-    on every frame; here prefixes are capped at T − 1, so each point is visible on its last
-    frame at least. Videos of 12 frames or more get exactly the official padding.
+    `taptr.api.context.draw_context` on the 256 × 256 frame with start frames drawn from
+    [0, 12). The official code fails on videos shorter than 12 frames, where a point can be
+    occluded on every frame; here start frames are capped at T − 1, so each point is visible
+    on its last frame at least. Videos of 12 frames or more get exactly the official padding.
 
     Args:
         frame0_positions: (n, 2) real points' (x, y) on frame 0, in 256-frame units.
         num_frames: T, frames in the video.
         num_queries: size of the padded set.
     """
-    count = num_queries - len(frame0_positions)
-    if count <= 0:
-        return Padding(np.zeros((0, 2)), np.zeros(0, dtype=np.int64))
-    # The official code reseeds numpy's global generator; a private one gives the same
-    # numbers without changing anyone else's random state.
-    rng = np.random.RandomState(0)
-    listed = np.empty((len(frame0_positions) + count, 2))
-    listed[: len(frame0_positions)] = frame0_positions
-    size = len(frame0_positions)
-    low, high = PADDING_BOUNDS
-    while size < count:
-        point = rng.randint(low, high + 1, size=2)
-        if size == 0 or np.sqrt(np.sum((listed[:size] - point) ** 2, axis=1)).min() >= 1:
-            listed[size] = point
-            size += 1
-    prefix = rng.randint(0, MAX_OCCLUDED_PREFIX, count).astype(np.int64)
-    return Padding(listed[size - count : size].copy(), np.minimum(prefix, num_frames - 1))
+    padding = draw_context(frame0_positions, num_queries, EVAL_FRAME, PREFIX_FRAMES)
+    return padding._replace(start_frames=np.minimum(padding.start_frames, num_frames - 1))
 
 
 class OfficialTAPTR:
@@ -167,7 +132,7 @@ class OfficialTAPTR:
             padding = official_padding(points.tracks[0, group], num_frames, self.num_queries)
             queries = np.concatenate([points.queries[group], _padded_queries(padding, frame)])
             start_visible = np.concatenate(
-                [np.ones(len(group), dtype=bool), padding.occluded_prefix <= frame]
+                [np.ones(len(group), dtype=bool), padding.start_frames <= frame]
             )
             track = functools.partial(self._pass, start_visible=start_visible)
             group_tracks, group_visible = track_both_ways(track, video, queries)
@@ -176,7 +141,7 @@ class OfficialTAPTR:
         return tracks, visible
 
 
-def _padded_queries(padding: Padding, frame: int | None) -> np.ndarray:
+def _padded_queries(padding: ContextPoints, frame: int | None) -> np.ndarray:
     """(K, 3) (t, x, y) queries of padded points: on ``frame``, or (None) their first visible."""
-    times = padding.occluded_prefix if frame is None else np.full(len(padding.positions), frame)
+    times = padding.start_frames if frame is None else np.full(len(padding.positions), frame)
     return np.concatenate([times[:, None].astype(np.float64), padding.positions], axis=1)

@@ -50,11 +50,15 @@ class EvalConfig:
         tracker: ``"taptr"`` (the model), ``"static"`` or ``"lk"`` (baselines).
         protocol: ``"standard"`` (canonical TAP-Vid scaling, any tracker) or ``"official"``
             (TAPTR's own evaluation; taptr tracker with a checkpoint only).
-        checkpoint: the model's checkpoint file or name; None = the bundled default
-            (standard protocol only).
+        checkpoint: the model's checkpoint file or name; None = the default model (the
+            paper's weights, else the bundled one; standard protocol only).
         max_videos: score only the first videos of the set.
         device: where the model runs; None = CUDA when available, else CPU.
         overlays: draw overlay videos of this many worst videos.
+        context_points: the predictor's context points (standard protocol, taptr tracker);
+            None = the model's own count, 0 = none.
+        points_per_call: track each video's queries in groups of this many, one call each
+            (standard protocol, taptr tracker); None = all at once.
     """
 
     dataset: str
@@ -66,6 +70,8 @@ class EvalConfig:
     max_videos: int | None = None
     device: str | None = None
     overlays: int = 0
+    context_points: int | None = None
+    points_per_call: int | None = None
 
     def __post_init__(self) -> None:
         for name, value, allowed in (
@@ -108,7 +114,11 @@ def build_protocol(config: EvalConfig, device: str) -> EvalProtocol:
     from taptr.eval.predictor_tracker import PredictorTracker
 
     tracker = PredictorTracker.from_pretrained(
-        config.checkpoint, backward=config.mode == "strided", device=device
+        config.checkpoint,
+        backward=config.mode == "strided",
+        device=device,
+        context_points=config.context_points,
+        points_per_call=config.points_per_call,
     )
     return StandardProtocol(tracker)
 

@@ -240,8 +240,13 @@ def from_dict(data: dict[str, Any]) -> TrainConfig:
     if preset not in PRESETS:
         raise ValueError(f"unknown training preset {preset!r}; known: {', '.join(PRESETS)}")
     config = PRESETS[preset]()
-    model = _model(config.model, data.pop("model", {}))
+    model_changes = dict(data.pop("model", {}))
+    model = _model(config.model, model_changes)
     data_config = _replace(config.data, dict(data.pop("data", {})), "data.")
+    if "context_points" not in model_changes:
+        # the trained model is fed at inference as its training clips fed it: with as
+        # many points as a clip holds (the saved config carries the count)
+        model = model.replace(context_points=data_config.num_points)
     config = _replace(config, data, "")
     return dataclasses.replace(config, model=model, data=data_config)
 

@@ -7,14 +7,18 @@ store portrait videos as rotated landscape). Writing makes H.264 mp4 through PyA
 FFmpeg, because OpenCV's pip wheel cannot encode H.264.
 
 Problems with the input are reported as one-line errors that name the file:
-`FileNotFoundError` when it is missing and `ValueError` when it is unsupported, unreadable
-or has no frames.
+`FileNotFoundError` when it is missing and `ValueError` when it is unsupported, unreadable,
+has no frames, or would exceed a limit of `taptr.limits` (``video_bytes`` for a whole video,
+``image_pixels`` for one frame; both checked from headers before decoding). A file that
+decodes to fewer or more frames than its container states gives a warning with both
+numbers.
 """
 
 from __future__ import annotations
 
 import os
 import re
+import warnings
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from fractions import Fraction
@@ -25,7 +29,9 @@ import av
 import cv2
 import numpy as np
 
+from taptr import limits
 from taptr.files import atomic_path
+from taptr.image_guard import image_size
 
 VIDEO_SUFFIXES = (".mp4", ".webm", ".avi", ".gif", ".mov", ".mkv")
 """File suffixes read through PyAV."""
@@ -125,8 +131,33 @@ def read_video(
 
     Returns:
         (T, H, W, 3) uint8 RGB frames.
+
+    Raises:
+        ValueError: as `iter_frames`, and when the decoded frames would exceed the
+            ``video_bytes`` limit of `taptr.limits` (checked from the header before decoding
+            when the container states its frame count, and while decoding in any case).
     """
-    return np.stack(list(iter_frames(path, stride=stride, max_frames=max_frames)))
+    frames = iter_frames(path, stride=stride, max_frames=max_frames)
+    source = Path(path)
+    declared, height, width = _declared_size(source)
+    if declared is not None:
+        count = (
+            -(-declared // stride)
+            if max_frames is None
+            else min(-(-declared // stride), max_frames)
+        )
+        what = f"{source}: {count} frames of {width}x{height}"
+        limits.check("video_bytes", count * height * width * 3, what)
+    decoded: list[np.ndarray] = []
+    total = 0
+    for frame in frames:
+        # the header can understate the count: keep counting what is really decoded
+        total += frame.nbytes
+        if total > limits.limit("video_bytes"):
+            what = f"{source}: more than {len(decoded)} frames of {frame.shape[1]}x{frame.shape[0]}"
+            limits.check("video_bytes", total, what)
+        decoded.append(frame)
+    return np.stack(decoded)
 
 
 def write_video(path: str | os.PathLike[str], frames: Iterable[np.ndarray], fps: float) -> Path:
@@ -195,11 +226,42 @@ def natural_sort_key(name: str) -> list[int | str]:
     return [int(part) if part.isdigit() else part.lower() for part in re.split(r"(\d+)", name)]
 
 
+def _declared_size(source: Path) -> tuple[int | None, int, int]:
+    """(frames, height, width) from the headers only; frames is None when not stated.
+
+    Raises:
+        ValueError: a frame declares more pixels than the ``image_pixels`` limit.
+    """
+    if source.is_dir():
+        images = _image_files(source)
+        size = image_size(images[0], str(images[0]))
+        return (len(images), *size) if size else (None, 0, 0)
+    with _open_video(source) as container:
+        stream = container.streams.video[0]
+        context = stream.codec_context  # None when FFmpeg has no decoder for the stream
+        height, width = (context.height, context.width) if context else (0, 0)
+        limits.check("image_pixels", height * width, f"{source}: {width}x{height} frames")
+        return stream.frames or None, height, width
+
+
 def _iter_video(source: Path, stride: int, max_frames: int | None) -> Iterator[np.ndarray]:
     with _open_video(source) as container:
+        declared = container.streams.video[0].frames
         frames = _decode(source, container, stride)
         yield _first(source, frames)
-        yield from islice(frames, None if max_frames is None else max_frames - 1)
+        count = 1
+        for frame in islice(frames, None if max_frames is None else max_frames - 1):
+            count += 1
+            yield frame
+    expected = -(-declared // stride)
+    if declared and count != expected and (max_frames is None or count < max_frames):
+        # a truncated file decodes fewer frames than its header states: never silently
+        warnings.warn(
+            f"{source}: decoded {count} frames where the container declares {expected}"
+            + (f" (every {stride}th of {declared})" if stride > 1 else "")
+            + "; the file may be truncated or damaged",
+            stacklevel=2,
+        )
 
 
 def _check_source(path: str | os.PathLike[str]) -> Path:
@@ -223,6 +285,7 @@ def _image_files(folder: Path) -> list[Path]:
 
 
 def _read_image(path: Path) -> np.ndarray:
+    image_size(path, str(path))  # refuses decompression bombs before OpenCV decodes them
     # IMREAD_COLOR turns grey and RGBA images into 3 channels, so every frame is (H, W, 3).
     image = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if image is None:

@@ -1,0 +1,139 @@
+"""Tracking a video frame by frame: memory bounded by the window, not by the video.
+
+`track_frames` feeds frames from any iterator (a decoder reading the file lazily) to an
+`OnlineTracker` and yields each frame together with its tracks as soon as no later
+window can change them (about one window behind the newest frame). Only the frames not
+yet final are held. `draw_final` turns those batches into overlay frames with trails,
+again holding only the last few rows of tracks, so a writer can encode the overlay while
+the video is still being read.
+
+With the video's length given (``num_frames``, the container's frame count), the tracks
+equal `Predictor.track` on the whole video in memory (see `taptr.api.online`).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Iterable, Iterator
+from itertools import islice
+from typing import NamedTuple
+
+import numpy as np
+
+from taptr.api.online import OnlineTracker, StreamUpdate
+from taptr.api.predictor import Predictor
+
+
+class FinalFrames(NamedTuple):
+    """Frames whose tracks can no longer change.
+
+    Attributes:
+        first_frame: index of the first frame.
+        frames: (F, H, W, 3) uint8 RGB frames.
+        tracks: (F, N, 2) float32 (x, y) pixels, pixel centres at integers.
+        visibility: (F, N) bool.
+        visibility_logits: (F, N) float32; −inf before a point's query frame.
+    """
+
+    first_frame: int
+    frames: np.ndarray
+    tracks: np.ndarray
+    visibility: np.ndarray
+    visibility_logits: np.ndarray
+
+
+def track_frames(
+    predictor: Predictor,
+    frames: Iterable[np.ndarray],
+    queries: np.ndarray,
+    *,
+    num_frames: int | None = None,
+    chunk: int = 4,
+) -> Iterator[FinalFrames]:
+    """Tracks queries through frames read one at a time.
+
+    Args:
+        predictor: the model and its settings.
+        frames: (H, W, 3) uint8 RGB frames, in order.
+        queries: (N, 3) (t, x, y) pixel queries, all known up front.
+        num_frames: the video's length when known (makes long videos equal offline tracking).
+        chunk: frames encoded at a time.
+
+    Yields:
+        `FinalFrames`, in order, covering every frame once.
+
+    Raises:
+        ValueError: no frames, bad queries, or fewer/more frames than ``num_frames``.
+    """
+    if chunk < 1:
+        raise ValueError(f"chunk must be >= 1, got {chunk}")
+    source = iter(frames)
+    first = next(source, None)
+    if first is None:
+        raise ValueError("the video has no frames")
+    online = OnlineTracker(predictor)
+    state = online.start(num_frames=num_frames, frame_size=first.shape[:2])
+    online.add_queries(state, queries)
+    held: deque[np.ndarray] = deque()
+    batch = [first, *islice(source, chunk - 1)]
+    while batch:
+        held.extend(batch)
+        yield from _final(online.step(state, np.stack(batch)), held)
+        batch = list(islice(source, chunk))
+    yield from _final(online.finish(state), held)
+
+
+def _final(update: StreamUpdate, held: deque[np.ndarray]) -> Iterator[FinalFrames]:
+    """Pairs an update with its frames, dropping them from ``held``."""
+    count = update.tracks.shape[0]
+    if count == 0:
+        return
+    frames = np.stack([held.popleft() for _ in range(count)])
+    yield FinalFrames(
+        update.first_frame,
+        frames,
+        update.tracks.numpy(),
+        update.visibility.numpy(),
+        update.visibility_logits.numpy(),
+    )
+
+
+def draw_final(
+    batches: Iterable[FinalFrames],
+    queries: np.ndarray,
+    *,
+    trail_length: int = 12,
+    radius: float | None = None,
+) -> Iterator[np.ndarray]:
+    """Overlay frames, one by one, as `taptr.viz.draw.draw_tracks` draws a whole video.
+
+    Args:
+        batches: `track_frames` output.
+        queries: (N, 3) (t, x, y) the queries (colours come from their positions).
+        trail_length: past frames each trail covers.
+        radius: point radius in pixels; None scales it with the image.
+
+    Yields:
+        (H, W, 3) uint8 RGB frames with the points and their trails.
+    """
+    from taptr.viz.draw import draw_frame, point_colors
+
+    colors = point_colors(queries[:, 1:])
+    starts = queries[:, 0].astype(np.int64)
+    tracks: deque[np.ndarray] = deque(maxlen=trail_length + 1)
+    visible: deque[np.ndarray] = deque(maxlen=trail_length + 1)
+    indices: deque[int] = deque(maxlen=trail_length + 1)
+    for batch in batches:
+        for offset, frame in enumerate(batch.frames):
+            tracks.append(batch.tracks[offset])
+            visible.append(batch.visibility[offset])
+            indices.append(batch.first_frame + offset)
+            active = np.array(indices)[:, None] >= starts[None, :]  # (K, N)
+            yield draw_frame(
+                frame,
+                np.stack(tracks),
+                np.stack(visible),
+                colors,
+                active=active,
+                radius=radius,
+            )

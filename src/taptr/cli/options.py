@@ -1,0 +1,118 @@
+"""Options several commands share, and the checks every command runs before its work starts.
+
+Each check raises a one-line ValueError that names the flag as the user typed it, so that a
+bad argument fails in a second instead of after a long run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+
+DEVICE_HELP = "where to run: cpu, cuda, cuda:N or mps (default: {default})"
+"""Help text of every ``--device`` option."""
+
+MIN_INPUT_SIDE = 48
+"""Smallest ``--input-size`` side: below it the coarsest feature map is a single pixel."""
+
+MAX_INPUT_SIDE = 4096
+"""Largest ``--input-size`` side: 8 frames of 4096×4096 already need tens of GB."""
+
+
+def add_device_argument(parser: argparse.ArgumentParser, default: str | None = None) -> None:
+    """Adds ``--device`` with the help text every command shares."""
+    parser.add_argument(
+        "--device",
+        default=default,
+        help=DEVICE_HELP.format(default=default or "cuda if available, else cpu"),
+    )
+
+
+def check_device(device: str | None, flag: str = "--device") -> None:
+    """Raises a ValueError unless ``device`` names a device this machine has (None: auto)."""
+    if device is None:
+        return
+    import torch
+
+    try:
+        parsed = torch.device(device)
+    except (RuntimeError, ValueError):
+        raise ValueError(f"{flag} {device}: not a device; use cpu, cuda, cuda:N or mps") from None
+    if parsed.type == "cuda":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if count == 0:
+            raise ValueError(f"{flag} {device}: this machine has no usable CUDA GPU; use cpu")
+        if parsed.index is not None and parsed.index >= count:
+            raise ValueError(f"{flag} {device}: this machine has {count} GPU(s), cuda:0..")
+    elif parsed.type == "mps":
+        if not torch.backends.mps.is_available():
+            raise ValueError(f"{flag} {device}: MPS is not available on this machine; use cpu")
+    elif parsed.type != "cpu":
+        raise ValueError(f"{flag} {device}: taptr runs on cpu, cuda or mps")
+
+
+def check_input_size(
+    size: Sequence[int] | None, flag: str = "--input-size", minimum: int = MIN_INPUT_SIDE
+) -> None:
+    """Raises a ValueError unless both sides lie in [``minimum``, `MAX_INPUT_SIDE`]."""
+    if size is None:
+        return
+    if not all(minimum <= side <= MAX_INPUT_SIDE for side in size):
+        raise ValueError(
+            f"{flag} {' '.join(map(str, size))}: each side must lie in "
+            f"[{minimum}, {MAX_INPUT_SIDE}] pixels"
+        )
+
+
+def check_at_least(value: int | None, minimum: int, flag: str) -> None:
+    """Raises a ValueError when a numeric option is below ``minimum`` (None: not given)."""
+    if value is not None and value < minimum:
+        raise ValueError(f"{flag} must be at least {minimum}, got {value}")
+
+
+def check_output_folder(path: str | os.PathLike[str], flag: str = "--out") -> None:
+    """Raises a ValueError unless ``path`` is a folder, or can be created as one."""
+    target = Path(path)
+    if target.exists() and not target.is_dir():
+        raise ValueError(f"{flag} {target} is a file; give a folder")
+    _check_writable(target, target, flag)
+
+
+def check_output_file(
+    path: str | os.PathLike[str], flag: str = "--out", suffixes: Sequence[str] = ()
+) -> None:
+    """Raises a ValueError unless ``path`` can be written as a file (with one of ``suffixes``)."""
+    target = Path(path)
+    if target.is_dir():
+        example = target / f"out{suffixes[0] if suffixes else ''}"
+        raise ValueError(f"{flag} {target} is a folder; give a file name, e.g. {example}")
+    if suffixes and target.suffix.lower() not in suffixes:
+        raise ValueError(f"{flag} {target}: the name must end in {' or '.join(suffixes)}")
+    _check_writable(target.absolute().parent, target, flag)
+
+
+def check_input_path(path: str | os.PathLike[str], flag: str) -> None:
+    """Raises FileNotFoundError naming ``flag`` when ``path`` (a file or folder) is missing."""
+    if not Path(path).exists():
+        raise FileNotFoundError(f"{flag} {path}: not found")
+
+
+def _check_writable(folder: Path, named: Path, flag: str) -> None:
+    """``folder``, or the nearest existing folder above it, must be a folder we can write in.
+
+    Messages name ``named``, the path as the user gave it with ``flag``.
+    """
+    parent = folder.absolute()
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise ValueError(f"{flag} {named}: {parent} is a file, not a folder")
+    # a real write: permission bits say little for root, read-only mounts or /proc
+    try:
+        with tempfile.TemporaryFile(dir=parent):
+            pass
+    except OSError as error:
+        raise ValueError(f"{flag} {named}: cannot write in {parent} ({error.strerror})") from None

@@ -1,0 +1,120 @@
+"""Query points typed on the command line (``--points``) or listed in a file (``--points-file``).
+
+The rules, as ``taptr track --help`` states them:
+
+- ``--points "t,x,y;t,x,y"``: the three numbers of a point are separated by commas (spaces
+  around them are allowed), points by ``;`` or newlines. Numbers separated by spaces only,
+  as in ``"0 100 100"``, are refused: it is not clear whether that is one point or a typo
+  for several, and a silently wrong reading would track the wrong points.
+- ``--points-file``: UTF-8 text with one point per line, its numbers separated by commas,
+  spaces or tabs (the output of ``numpy.savetxt`` reads as is); ``#`` starts a comment, and
+  the first line may be a header such as ``t,x,y``. Any other line that is not three
+  numbers is an error naming its line number, and so is a NaN or infinite number.
+
+Both stop at the limit of `taptr.api.inputs.max_points` before building the array.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from pathlib import Path
+
+import numpy as np
+
+MAX_LINE_CHARS = 4096
+"""Longest line of a points file; a longer one is not a list of points."""
+
+
+def parse_points(text: str, flag: str = "--points") -> np.ndarray:
+    """``"t,x,y;t,x,y"`` → (N, 3) float32; every point has three comma-separated numbers.
+
+    Raises:
+        ValueError: naming ``flag`` and the point, for anything that is not three finite
+            numbers, and for more points than `max_points`.
+    """
+    from taptr.api.inputs import check_num_points
+
+    chunks = [chunk.strip() for chunk in re.split(r"[;\n]", text) if chunk.strip()]
+    if not chunks:
+        raise ValueError(f"{flag} {text!r} holds no points; write t,x,y;t,x,y;...")
+    check_num_points(len(chunks), flag)
+    rows = []
+    for number, chunk in enumerate(chunks, 1):
+        fields = [field.strip() for field in chunk.split(",")]
+        if any(re.search(r"\s", field) for field in fields):
+            raise ValueError(
+                f"{flag}: point {number} {chunk!r} has numbers separated by spaces; separate "
+                "the numbers of a point by commas and points by ';', as in '0,100,100;5,20,30'"
+            )
+        rows.append(_triple(fields, f"{flag}: point {number} {chunk!r}"))
+    return np.array(rows, np.float32)
+
+
+def read_points_file(path: str, flag: str = "--points-file") -> np.ndarray:
+    """Queries from a text file with one ``t,x,y`` per line (see the module's rules).
+
+    Reads line by line, so a huge file fails at the point limit instead of filling memory.
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: naming the file and line, for a line that is not three finite
+            numbers, text that is not UTF-8, or more points than `max_points`.
+    """
+    from taptr.api.inputs import check_num_points, max_points
+
+    file = Path(path)
+    if not file.is_file():
+        raise FileNotFoundError(f"{flag} {file}: file not found")
+    rows: list[tuple[float, float, float]] = []
+    limit = max_points()
+    try:
+        with file.open(encoding="utf-8-sig", newline=None) as stream:
+            for number, line in enumerate(iter(lambda: stream.readline(MAX_LINE_CHARS + 1), ""), 1):
+                if len(line.rstrip("\n")) > MAX_LINE_CHARS:
+                    raise ValueError(
+                        f"{flag} {file} line {number}: longer than {MAX_LINE_CHARS} characters"
+                    )
+                row = _file_line(line, number, header_allowed=not rows, where=f"{flag} {file}")
+                if row is not None:
+                    rows.append(row)
+                    if len(rows) > limit:
+                        check_num_points(len(rows), f"{flag} {file} (at line {number})")
+    except UnicodeDecodeError as error:
+        raise ValueError(
+            f"{flag} {file}: not UTF-8 text (byte {error.start}); give a text file of t,x,y lines"
+        ) from None
+    if not rows:
+        raise ValueError(f"{flag} {file} holds no t,x,y lines")
+    return np.array(rows, np.float32)
+
+
+def _file_line(
+    line: str, number: int, *, header_allowed: bool, where: str
+) -> tuple[float, float, float] | None:
+    """One line of a points file: a point, or None for blanks, comments and the header."""
+    content = line.split("#", 1)[0].strip()
+    if not content:
+        return None
+    fields = [field for field in re.split(r"[,\s]+", content) if field]
+    if header_allowed and not any(_is_number(field) for field in fields):
+        return None  # a header such as "t,x,y" or "frame x y"
+    return _triple(fields, f"{where} line {number} {content!r}")
+
+
+def _triple(fields: list[str], where: str) -> tuple[float, float, float]:
+    """Three finite numbers, or a ValueError that starts with ``where``."""
+    if len(fields) != 3 or not all(_is_number(field) for field in fields):
+        raise ValueError(f"{where}: points must be triples t,x,y of numbers")
+    values = tuple(float(field) for field in fields)
+    if not all(math.isfinite(value) for value in values):
+        raise ValueError(f"{where}: NaN or infinite number")
+    return values  # type: ignore[return-value]
+
+
+def _is_number(field: str) -> bool:
+    try:
+        float(field)
+    except ValueError:
+        return False
+    return True

@@ -1,0 +1,73 @@
+"""Fuzz tests: generated and mutated files through every reader (issue 15).
+
+Each input category of `tests.fuzz_targets` must give a valid result or a clean error
+(`ValueError`, `FileNotFoundError`), never another exception and never NaN or a malformed
+array. The default profile (tests/conftest.py) runs a few examples per category;
+``--hypothesis-profile=long`` runs 2,000, and ``scripts/fuzz_report.py`` tabulates them.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import warnings
+
+import pytest
+from hypothesis import given
+
+from tests import fuzz_targets as targets
+
+
+def _run(target, value) -> None:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # a truncated video's frame-count warning is fine
+        with contextlib.suppress(targets.CLEAN):
+            target(value)
+
+
+@given(targets.mutated_pickles)
+def test_fuzz_tapvid_mutated_pickles(data):
+    _run(targets.read_tapvid, data)
+
+
+@given(targets.opcode_pickles)
+def test_fuzz_tapvid_unpickler_attacks(data):
+    _run(targets.read_tapvid, data)
+
+
+@given(targets.tapvid_items())
+def test_fuzz_tapvid_generated_items(data):
+    _run(targets.read_tapvid, data)
+
+
+@given(targets.kubric_folders())
+def test_fuzz_kubric_folders(files):
+    _run(targets.read_kubric, files)
+
+
+@given(targets.checkpoint_mutations())
+def test_fuzz_checkpoint_mutations(data):
+    _run(targets.read_checkpoint, data)
+
+
+@given(targets.checkpoint_bytes)
+def test_fuzz_checkpoint_bytes(data):
+    _run(targets.read_checkpoint, data)
+
+
+@given(targets.video_inputs())
+def test_fuzz_videos_and_frame_folders(files):
+    _run(targets.read_video_files, files)
+
+
+def test_every_category_is_fuzzed():
+    tested = {name for name in globals() if name.startswith("test_fuzz_")}
+    assert len(tested) == len(targets.CATEGORIES)
+
+
+@pytest.mark.parametrize("name", sorted(targets.CATEGORIES))
+def test_classify_sorts_outcomes(name):
+    strategy, target = targets.CATEGORIES[name]
+    assert targets.classify(lambda _: None, None) == "valid"
+    assert targets.classify(lambda _: int("x"), None) == "clean"
+    assert targets.classify(lambda _: [][1], None) == "traceback"
+    assert callable(target) and strategy is not None

@@ -1,0 +1,119 @@
+"""``taptr track``: streamed videos, several videos per run, resuming, and torchrun sharding."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+import taptr
+from taptr.checkpoint import save_checkpoint
+from taptr.cli.main import main
+from taptr.cli.videos import expand_videos, result_folders
+from taptr.config import get_config
+from taptr.viz.export import load_tracks_npz
+from taptr.viz.video_io import read_video, write_video
+
+QUERIES = "0,16,22;3,30.5,20;5,50,10"
+
+
+def _frames(count: int, shift: int) -> np.ndarray:
+    frames = np.full((count, 48, 64, 3), 40, np.uint8)
+    for t in range(count):
+        frames[t, 16:28, 4 + shift * t : 16 + shift * t] = (230, 200, 40)
+    return frames
+
+
+@pytest.fixture(scope="module")
+def clips(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("clips")
+    for name, count, shift in (("a", 14, 2), ("b", 10, 3), ("c", 9, 1)):
+        write_video(folder / f"{name}.mp4", _frames(count, shift), fps=10)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory):
+    torch.manual_seed(0)
+    built = taptr.build_model(get_config("tiny").replace(context_points=6))
+    return save_checkpoint(built, tmp_path_factory.mktemp("model") / "tiny.pth")
+
+
+def test_streamed_tracks_equal_the_predictor(clips, checkpoint, tmp_path, capsys):
+    out = tmp_path / "one"
+    args = ["track", str(clips / "a.mp4"), "--points", QUERIES, "--checkpoint", str(checkpoint)]
+    assert main([*args, "--out", str(out), "--trajectories"]) == 0
+    saved = load_tracks_npz(out / "tracks.npz")
+    predictor = taptr.Predictor.from_pretrained(checkpoint, device="cpu")
+    expected = predictor.track(read_video(clips / "a.mp4"), saved.queries)
+    # float32 noise only: chunks of 4 frames are encoded where the predictor encodes windows
+    # (tests/test_streaming.py shows equality to 1e-6 in float64)
+    np.testing.assert_allclose(saved.tracks, expected.tracks[0].numpy(), atol=5e-3, rtol=0)
+    np.testing.assert_array_equal(saved.visibility, expected.visibility[0].numpy())
+    assert saved.metadata["context_points"] == 6
+    assert saved.metadata["model"] == str(checkpoint)
+    assert {p.name for p in out.iterdir()} >= {"overlay.mp4", "tracks.csv", "trajectories.png"}
+    assert len(read_video(out / "overlay.mp4")) == 14
+    assert "tracked 3 points through 14 frames" in capsys.readouterr().out
+
+
+def test_several_videos_one_folder_each_and_a_rerun_skips_them(clips, checkpoint, tmp_path, capsys):
+    out = tmp_path / "many"
+    args = ["track", str(clips), "--points", QUERIES, "--checkpoint", str(checkpoint)]
+    assert main([*args, "--out", str(out)]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["a", "b", "c"]
+    assert load_tracks_npz(out / "b" / "tracks.npz").tracks.shape == (10, 3, 2)
+    assert "3 videos: 3 tracked, 0 already done, 0 failed" in capsys.readouterr().out
+    (out / "c" / "overlay.mp4").unlink()  # as a crash before the end would leave it
+    assert main([*args, "--out", str(out)]) == 0
+    assert "3 videos: 1 tracked, 2 already done, 0 failed" in capsys.readouterr().out
+
+
+def test_a_failing_video_does_not_stop_the_others(clips, checkpoint, tmp_path, capsys):
+    broken = tmp_path / "broken.mp4"
+    broken.write_bytes(b"not a video")
+    args = ["track", str(clips / "b.mp4"), str(broken), "--grid", "2"]
+    assert main([*args, "--checkpoint", str(checkpoint), "--out", str(tmp_path / "o")]) == 2
+    out = capsys.readouterr().out
+    assert "2 videos: 1 tracked, 0 already done, 1 failed" in out and "broken.mp4: failed" in out
+
+
+def test_expanding_globs_folders_and_names(clips, tmp_path):
+    assert [p.name for p in expand_videos([str(clips / "*.mp4")])] == ["a.mp4", "b.mp4", "c.mp4"]
+    assert expand_videos([str(clips), str(clips / "a.mp4")]) == sorted(clips.glob("*.mp4"))
+    with pytest.raises(FileNotFoundError, match="no video matches"):
+        expand_videos([str(clips / "*.webm")])
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    (frames / "0001.png").write_bytes(b"")
+    assert expand_videos([str(frames)]) == [frames]  # an image folder is one video
+    twins = [tmp_path / "x" / "a.mp4", tmp_path / "y" / "a.mp4", tmp_path / "b.mp4"]
+    assert [p.name for p in result_folders(twins, tmp_path / "o")] == ["x-a", "y-a", "b"]
+    assert result_folders(twins[:1], tmp_path / "o") == [tmp_path / "o"]
+
+
+def test_two_processes_write_the_same_files_as_one(clips, checkpoint, tmp_path, capsys):
+    args = ["track", str(clips), "--points", QUERIES, "--checkpoint", str(checkpoint)]
+    assert main([*args, "--out", str(tmp_path / "one")]) == 0
+    capsys.readouterr()
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=os.pathsep.join(sys.path))
+    command = [sys.executable, "-m", "torch.distributed.run", "--standalone"]
+    command += ["--nproc_per_node", "2", "-m", "taptr.cli.main"]
+    done = subprocess.run(
+        [*command, *args, "--device", "cpu", "--out", str(tmp_path / "two")],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=180,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.count("3 videos: 3 tracked") == 1  # one summary, from rank 0
+    for name in ("a", "b", "c"):
+        one = load_tracks_npz(tmp_path / "one" / name / "tracks.npz")
+        two = load_tracks_npz(tmp_path / "two" / name / "tracks.npz")
+        np.testing.assert_array_equal(one.tracks, two.tracks)
+        np.testing.assert_array_equal(one.visibility, two.visibility)
