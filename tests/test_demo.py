@@ -36,6 +36,7 @@ ALLOWED_IMPORTS = (
     "taptr.editing",
     "taptr.data.sample_video",
     "taptr.demo",
+    "taptr.files",  # temporary files and folders, a ground-floor utility
 )
 
 
@@ -269,3 +270,34 @@ def test_page_shows_the_fallback_notice_next_to_the_model(tmp_path):
     header = next(text for text in texts if isinstance(text, str) and "Model:" in text)
     assert "taptr-small-synthetic" in header and predictor.notice in header
     assert "trained on synthetic videos only" in header
+
+
+def test_disk_quota_refuses_and_deletes_the_upload(tmp_path, capsys):
+    from taptr.demo.handlers import check_disk_quota
+
+    (tmp_path / "uploads").mkdir()
+    upload = tmp_path / "uploads" / "big.mp4"
+    upload.write_bytes(b"x" * 2000)
+    check_disk_quota(tmp_path, 4000, upload=str(upload))  # within the quota: kept
+    assert upload.exists()
+    with pytest.raises(DemoError, match="disk space is full"):
+        check_disk_quota(tmp_path, 1000, upload=str(upload))
+    assert not upload.exists()
+    assert main(["demo", "--checkpoint", "tiny", "--max-disk-gb", "0"]) == 2
+    assert "--max-disk-gb must be positive" in capsys.readouterr().err
+
+
+def test_a_killed_servers_workspace_is_removed_by_the_next(tmp_path, monkeypatch):
+    import tempfile
+
+    from taptr.demo.launch import WORKSPACE_PREFIX, private_workspace
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    dead = tmp_path / f"{WORKSPACE_PREFIX}999999999-abcd1234.tmp"  # no such process
+    (dead / "uploads").mkdir(parents=True)
+    alive = tmp_path / f"{WORKSPACE_PREFIX}{os.getpid()}-other123.tmp"
+    alive.mkdir()
+    with private_workspace() as workspace:
+        assert workspace.name.startswith(f"{WORKSPACE_PREFIX}{os.getpid()}-")
+        assert not dead.exists() and alive.exists()
+    assert not workspace.exists()

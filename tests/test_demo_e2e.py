@@ -107,6 +107,7 @@ def server(tmp_path):
             process.kill()
             process.wait()
     assert process.returncode == 0, log.read_text()
+    assert "Keyboard interruption" not in log.read_text()  # SIGTERM stops it quietly
     for name, folder in folders.items():
         left = sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*"))
         assert not left, f"the demo left files in its {name} folder: {left[:10]}"

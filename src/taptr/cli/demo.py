@@ -24,7 +24,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="start the web demo (needs pip install 'taptr[demo]')",
         description="Serves a Gradio page for tracking clicked points, painted regions or grids "
         "and for editing videos. Uploads and outputs stay in a temporary folder that is removed "
-        "on exit. Stop it with Ctrl-C.",
+        "on exit (or by the next start, if the server was killed). Stop it with Ctrl-C.",
     )
     parser.add_argument(
         "--host", default=DEFAULT_HOST, help=f"interface to bind (default {DEFAULT_HOST})"
@@ -45,6 +45,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         default=defaults.max_points,
         help=f"most points one run may track (default {defaults.max_points})",
     )
+    parser.add_argument(
+        "--max-disk-gb",
+        type=float,
+        default=defaults.max_disk_bytes / 2**30,
+        help="most disk space uploads and outputs may take together, in GiB; beyond it "
+        f"uploads and runs are refused until old runs expire (default "
+        f"{defaults.max_disk_bytes / 2**30:g})",
+    )
     add_model_arguments(parser, max_frames=defaults.max_frames)
     parser.set_defaults(func=run)
 
@@ -60,7 +68,14 @@ def run(args: argparse.Namespace) -> int:
     from taptr.demo.settings import Limits
 
     check_model_arguments(args)
-    limits = Limits(max_frames=args.max_frames, max_side=args.max_side, max_points=args.max_points)
+    if not args.max_disk_gb > 0:
+        raise ValueError(f"--max-disk-gb must be positive, got {args.max_disk_gb}")
+    limits = Limits(
+        max_frames=args.max_frames,
+        max_side=args.max_side,
+        max_points=args.max_points,
+        max_disk_bytes=int(args.max_disk_gb * 2**30),
+    )
     if not _is_loopback(args.host):
         print(
             f"taptr demo: warning: binding {args.host} puts the demo, which has no login, "

@@ -98,6 +98,7 @@ def build_app(
         if path is None:
             raise user_error(ValueError("no video: upload a file or pick a sample"))
         try:
+            handlers.check_disk_quota(workspace, limits.max_disk_bytes, upload=path)
             return show_video(load_video(path, limits))
         except ValueError as error:
             raise user_error(error) from None
@@ -167,6 +168,7 @@ def build_app(
                 grid_size=int(grid_size),
             )
             handlers.prune_runs(workspace, RUN_MAX_AGE_S)
+            handlers.check_disk_quota(workspace, limits.max_disk_bytes)
             out = handlers.track_video(
                 predictor,
                 video,
@@ -192,6 +194,7 @@ def build_app(
         try:
             height, width = video.frames.shape[1:3]
             handlers.prune_runs(workspace, RUN_MAX_AGE_S)
+            handlers.check_disk_quota(workspace, limits.max_disk_bytes)
             out = handlers.edit_video(
                 predictor,
                 video,

@@ -83,6 +83,26 @@ def prune_runs(root: str | os.PathLike[str], max_age_s: float) -> int:
     return removed
 
 
+def check_disk_quota(root: str | os.PathLike[str], limit: int, upload: str | None = None) -> None:
+    """Raises a `DemoError` when the workspace holds more than ``limit`` bytes.
+
+    Args:
+        root: the server's workspace.
+        limit: the quota in bytes.
+        upload: a file just written into the workspace by an upload; it is deleted when
+            the quota is exceeded, so a refused upload takes no space.
+    """
+    used = sum(p.stat().st_size for p in Path(root).rglob("*") if p.is_file())
+    if used <= limit:
+        return
+    if upload is not None and Path(upload).resolve().is_relative_to(Path(root).resolve()):
+        Path(upload).unlink(missing_ok=True)
+    raise DemoError(
+        f"the demo's disk space is full ({used / 2**30:.1f} of {limit / 2**30:.1f} GiB); "
+        "runs expire after an hour, try again later"
+    )
+
+
 def track_video(
     predictor: Predictor,
     video: LoadedVideo,

@@ -2,8 +2,9 @@
 
 Uploaded files, generated samples and every output live in one temporary folder made for
 this server (`private_workspace`) and removed when it stops, including on Ctrl-C and
-SIGTERM; nothing is written anywhere else. Gradio is imported only inside `serve`, after its
-environment is set: it reads ``GRADIO_TEMP_DIR`` (where it keeps uploads) at import time.
+SIGTERM, or by the next server when this one was killed; nothing is written anywhere
+else. Gradio is imported only inside `serve`, after its environment is set: it reads
+``GRADIO_TEMP_DIR`` (where it keeps uploads) at import time.
 """
 
 from __future__ import annotations
@@ -16,16 +17,21 @@ import signal
 import sys
 import tempfile
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from taptr.demo.settings import DEFAULT_HOST, DEFAULT_PORT, MAX_UPLOAD, Limits
+from taptr.files import remove_stale_temporaries
 
 if TYPE_CHECKING:
     from taptr.api.predictor import Predictor
 
 logger = logging.getLogger(__name__)
+
+WORKSPACE_PREFIX = "taptr-demo-"
+"""Start of the name of each server's temporary folder (``taptr-demo-PID-XXXX.tmp``)."""
 
 
 @contextlib.contextmanager
@@ -36,7 +42,9 @@ def private_workspace() -> Iterator[Path]:
     Gradio imports when installed, at ``<workspace>/matplotlib``) and turns Gradio's
     analytics off; these settings must be in the environment before Gradio is imported.
     """
-    workspace = Path(tempfile.mkdtemp(prefix="taptr-demo-"))
+    # the pid in the name lets the next server remove what a killed one (SIGKILL) left
+    remove_stale_temporaries(Path(tempfile.gettempdir()), WORKSPACE_PREFIX, ".tmp")
+    workspace = Path(tempfile.mkdtemp(prefix=f"{WORKSPACE_PREFIX}{os.getpid()}-", suffix=".tmp"))
     keys = ("GRADIO_TEMP_DIR", "GRADIO_ANALYTICS_ENABLED", "MPLCONFIGDIR")
     previous = {key: os.environ.get(key) for key in keys}
     os.environ["GRADIO_TEMP_DIR"] = str(workspace / "uploads")
@@ -102,7 +110,9 @@ def serve(
     demo.launch(
         server_name=host,
         server_port=port,
-        prevent_thread_lock=not block,
+        # we wait ourselves: Gradio's own wait prints "Keyboard interruption in main
+        # thread" on every stop, SIGTERM included
+        prevent_thread_lock=True,
         allowed_paths=[str(workspace)],
         max_file_size=MAX_UPLOAD,
         ssr_mode=False,  # server-side rendering would start a Node.js process
@@ -111,6 +121,14 @@ def serve(
         # The run-history page can copy users' runs to a Hugging Face bucket: keep them here.
         run_history=False,
     )
+    if block:
+        try:
+            while True:
+                time.sleep(1)
+        except KeyboardInterrupt:
+            pass
+        finally:
+            demo.close()
     return demo
 
 

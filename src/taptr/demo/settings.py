@@ -27,12 +27,15 @@ class Limits:
         max_frames: longer videos are cut to their first ``max_frames`` frames.
         max_side: videos whose longer side exceeds this many pixels are refused.
         max_points: the most query points one run may track (clicks, region or grid).
+        max_disk_bytes: the most the server's workspace (uploads, samples, run outputs)
+            may hold; an upload or a run beyond it is refused until old runs expire.
     """
 
     max_frames: int = 150
     max_side: int = 1280
     max_points: int = 400
+    max_disk_bytes: int = 4 << 30
 
     def __post_init__(self) -> None:
-        if min(self.max_frames, self.max_side, self.max_points) < 1:
+        if min(self.max_frames, self.max_side, self.max_points, self.max_disk_bytes) < 1:
             raise ValueError(f"demo limits must be >= 1, got {self}")
