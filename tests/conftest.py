@@ -31,6 +31,9 @@ os.environ["HF_HUB_OFFLINE"] = "1"
 os.environ["HF_HUB_CACHE"] = os.path.join(
     os.environ.get("TMPDIR", "/tmp"), f"taptr-tests-hub-cache-{os.getpid()}"
 )
+if importlib.util.find_spec("huggingface_hub"):
+    # it reads these once, at import: import it now, not inside a test that patches them
+    importlib.import_module("huggingface_hub.constants")
 
 
 @pytest.fixture

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -49,4 +52,16 @@ def decode_window_inputs(
         torch.randn(points, channels, generator=generator),
         offsets >= starts,
         offsets > starts,
+    )
+
+
+def run_torchrun(
+    args: list[str], processes: int = 2, timeout: float = 180
+) -> subprocess.CompletedProcess:
+    """``taptr ARGS`` under torchrun with ``processes`` CPU processes (gloo), one thread each."""
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=os.pathsep.join(sys.path))
+    command = [sys.executable, "-m", "torch.distributed.run", "--standalone"]
+    command += ["--nproc_per_node", str(processes), "-m", "taptr.cli.main"]
+    return subprocess.run(
+        [*command, *args], env=env, capture_output=True, text=True, timeout=timeout
     )

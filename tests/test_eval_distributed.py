@@ -3,11 +3,9 @@
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 
 from taptr.cli.main import main
+from tests.helpers import run_torchrun
 from tests.test_tapvid_fabricated import make_clip, write_davis
 
 
@@ -25,16 +23,7 @@ def test_two_processes_equal_one(tmp_path, capsys):
     assert main([*args, "--out", str(tmp_path / "one")]) == 0
     capsys.readouterr()
 
-    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=os.pathsep.join(sys.path))
-    command = [sys.executable, "-m", "torch.distributed.run", "--standalone"]
-    command += ["--nproc_per_node", "2", "-m", "taptr.cli.main"]
-    done = subprocess.run(
-        [*command, *args, "--device", "cpu", "--out", str(tmp_path / "two")],
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    done = run_torchrun([*args, "--device", "cpu", "--out", str(tmp_path / "two")], timeout=120)
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.count("wrote") == 2  # the main process alone reports
 

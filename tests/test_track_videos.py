@@ -2,10 +2,6 @@
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
-
 import numpy as np
 import pytest
 import torch
@@ -17,6 +13,7 @@ from taptr.cli.videos import expand_videos, result_folders
 from taptr.config import get_config
 from taptr.viz.export import load_tracks_npz
 from taptr.viz.video_io import read_video, write_video
+from tests.helpers import run_torchrun
 
 QUERIES = "0,16,22;3,30.5,20;5,50,10"
 
@@ -100,16 +97,7 @@ def test_two_processes_write_the_same_files_as_one(clips, checkpoint, tmp_path, 
     args = ["track", str(clips), "--points", QUERIES, "--checkpoint", str(checkpoint)]
     assert main([*args, "--out", str(tmp_path / "one")]) == 0
     capsys.readouterr()
-    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=os.pathsep.join(sys.path))
-    command = [sys.executable, "-m", "torch.distributed.run", "--standalone"]
-    command += ["--nproc_per_node", "2", "-m", "taptr.cli.main"]
-    done = subprocess.run(
-        [*command, *args, "--device", "cpu", "--out", str(tmp_path / "two")],
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=180,
-    )
+    done = run_torchrun([*args, "--device", "cpu", "--out", str(tmp_path / "two")])
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.count("3 videos: 3 tracked") == 1  # one summary, from rank 0
     for name in ("a", "b", "c"):

@@ -272,12 +272,19 @@ def load_checkpoint(path: str | os.PathLike[str], *, device: str | torch.device 
         FileNotFoundError: the file does not exist.
         CheckpointError: the file cannot be used (the message names it and the reason).
     """
+    return load_checkpoint_and_threshold(path, device=device)[0]
+
+
+def load_checkpoint_and_threshold(
+    path: str | os.PathLike[str], *, device: str | torch.device = "cpu"
+) -> tuple[TAPTR, float | None]:
+    """`load_checkpoint` and `read_visibility_threshold` of one file, reading it once."""
     checkpoint = read_file(path)
     if not isinstance(checkpoint, Mapping):
         raise CheckpointError(f"{path} holds a {type(checkpoint).__name__}, not a checkpoint dict")
     model, weights = model_from_checkpoint(checkpoint, str(path))
     load_weights(model, weights, str(path))
-    return model.to(device).eval()
+    return model.to(device).eval(), _stored_threshold(checkpoint, str(path))
 
 
 def checkpoint_dict(
@@ -316,7 +323,10 @@ def read_visibility_threshold(path: str | os.PathLike[str]) -> float | None:
 
     Only taptr-format files can hold one; the authors' release never does.
     """
-    checkpoint = read_file(path)
+    return _stored_threshold(read_file(path), str(path))
+
+
+def _stored_threshold(checkpoint: Any, source: str) -> float | None:
     if not isinstance(checkpoint, Mapping) or checkpoint.get("format") != FORMAT:
         return None
     value = checkpoint.get("visibility_threshold")
@@ -324,7 +334,7 @@ def read_visibility_threshold(path: str | os.PathLike[str]) -> float | None:
         return None
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < 1:
         raise CheckpointError(
-            f"{path}: visibility_threshold must be a number in (0, 1), got {value!r:.40}"
+            f"{source}: visibility_threshold must be a number in (0, 1), got {value!r:.40}"
         )
     return float(value)
 

@@ -35,7 +35,7 @@ from typing import NamedTuple
 
 import torch
 
-from taptr.checkpoint import CheckpointError, load_checkpoint
+from taptr.checkpoint import CheckpointError, load_checkpoint_and_threshold
 from taptr.config import PRESETS
 from taptr.model.build import build_model
 from taptr.model.taptr import TAPTR
@@ -105,12 +105,19 @@ class ModelChoice(NamedTuple):
         name: the name or path it was loaded as.
         path: the file it was read from (None for a preset).
         notice: the fallback warning, when the default model could not be had.
+        visibility_threshold: the calibrated threshold stored in the file, if any.
     """
 
     model: TAPTR
     name: str
     path: Path | None
     notice: str | None = None
+    visibility_threshold: float | None = None
+
+
+def _from_file(path: str | os.PathLike[str], name: str) -> ModelChoice:
+    model, threshold = load_checkpoint_and_threshold(path)
+    return ModelChoice(model, name, Path(path), visibility_threshold=threshold)
 
 
 _TRUE = {"1", "on", "yes", "true"}
@@ -308,10 +315,9 @@ def load_model(
         return _default_model(cache_dir)
     name = str(name_or_path)
     if Path(name).is_file():
-        return ModelChoice(load_checkpoint(name), name, Path(name))
+        return _from_file(name, name)
     if name in WEIGHTS:
-        path = _published_path(name, cache_dir)
-        return ModelChoice(load_checkpoint(path), name, path)
+        return _from_file(_published_path(name, cache_dir), name)
     if name in BUNDLED:
         return _bundled(name)
     if name in PRESETS:
@@ -334,8 +340,7 @@ def resolve_model(
 def _default_model(cache_dir: str | os.PathLike[str] | None) -> ModelChoice:
     """The paper's weights when they can be had, else the bundled model and one warning."""
     try:
-        path = _published_path(DEFAULT_MODEL, cache_dir)
-        return ModelChoice(load_checkpoint(path), DEFAULT_MODEL, path)
+        return _from_file(_published_path(DEFAULT_MODEL, cache_dir), DEFAULT_MODEL)
     except (FileNotFoundError, ModuleNotFoundError, CheckpointError) as error:
         reason = _reason(error)
     notice = fallback_notice(reason)
@@ -359,7 +364,7 @@ def _reason(error: BaseException) -> str:
 def _bundled(name: str) -> ModelChoice:
     path = bundled_path(name)
     if path is not None:
-        return ModelChoice(load_checkpoint(path), name, path)
+        return _from_file(path, name)
     preset = BUNDLED[name][1] if BUNDLED[name][1] in PRESETS else "tiny"
     logger.warning(
         "bundled weights %r are not installed: using the %r preset with UNTRAINED weights, "

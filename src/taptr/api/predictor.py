@@ -73,7 +73,8 @@ class Predictor:
         self.dtype = dtype
         self.model = model.to(self.device, dtype).eval()
         config = model.config
-        self.input_size = tuple(input_size or (config.input_size if config else (512, 512)))
+        height, width = input_size or (config.input_size if config else (512, 512))
+        self.input_size: tuple[int, int] = (int(height), int(width))
         self.resize = config.resize if config else "bilinear"
         if context_points is None:
             context_points = config.context_points if config else 0
@@ -99,14 +100,11 @@ class Predictor:
         with one warning (also kept in ``notice``). Without an explicit ``visibility_threshold``,
         a threshold stored in the file by ``taptr calibrate`` is used (0.5 when there is none).
         """
-        from taptr.checkpoint import read_visibility_threshold
         from taptr.hub import load_model
 
         choice = load_model(name_or_path)
-        if "visibility_threshold" not in kwargs and choice.path is not None:
-            stored = read_visibility_threshold(choice.path)
-            if stored is not None:
-                kwargs["visibility_threshold"] = stored
+        if "visibility_threshold" not in kwargs and choice.visibility_threshold is not None:
+            kwargs["visibility_threshold"] = choice.visibility_threshold
         kwargs.setdefault("source", choice.name)
         kwargs.setdefault("notice", choice.notice)
         return cls(choice.model, **kwargs)

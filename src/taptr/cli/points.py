@@ -12,6 +12,8 @@ The rules, as ``taptr track --help`` states them:
   numbers is an error naming its line number, and so is a NaN or infinite number.
 
 Both stop at the limit of `taptr.api.inputs.max_points` before building the array.
+`build_queries` turns any of ``taptr track``'s query options (these two, ``--grid``,
+``--mask``) into (N, 3) queries.
 """
 
 from __future__ import annotations
@@ -19,8 +21,14 @@ from __future__ import annotations
 import math
 import re
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    import argparse
+
+    from taptr.viz.video_io import VideoInfo
 
 MAX_LINE_CHARS = 4096
 """Longest line of a points file; a longer one is not a list of points."""
@@ -87,6 +95,54 @@ def read_points_file(path: str, flag: str = "--points-file") -> np.ndarray:
     if not rows:
         raise ValueError(f"{flag} {file} holds no t,x,y lines")
     return np.array(rows, np.float32)
+
+
+def listed_points(args: argparse.Namespace) -> np.ndarray | None:
+    """The queries of --points or --points-file (read before the video), else None."""
+    if args.points is not None:
+        return parse_points(args.points)
+    if args.points_file is not None:
+        return read_points_file(args.points_file)
+    return None
+
+
+def check_listed_points(
+    points: np.ndarray, info: VideoInfo, max_frames: int | None, flag: str
+) -> None:
+    """Checks listed queries against the video's size, before decoding the video.
+
+    Containers may state a wrong frame count, so queries at or beyond it are left to the
+    predictor, which checks them on the decoded frames.
+    """
+    from taptr.api.inputs import query_tensor
+
+    if info.num_frames is None:
+        return
+    num_frames = min(info.num_frames, max_frames or info.num_frames)
+    if float(points[:, 0].max()) >= num_frames:
+        return
+    try:
+        query_tensor(points, 1, num_frames, info.height, info.width)
+    except ValueError as error:
+        raise ValueError(f"{flag}: {error}") from None
+
+
+def build_queries(args: argparse.Namespace, num_frames: int, height: int, width: int) -> np.ndarray:
+    """The (N, 3) queries the arguments ask for, on a video of that many frames and size."""
+    from taptr.api.inputs import check_num_points, grid_queries
+    from taptr.editing import read_mask, sample_region_queries
+
+    listed = listed_points(args)
+    if listed is not None:
+        return listed
+    if not 0 <= args.query_frame < num_frames:
+        raise ValueError(f"--query-frame {args.query_frame} outside [0, {num_frames})")
+    if args.grid is not None:
+        return grid_queries(args.grid, args.query_frame, height, width, name="--grid").numpy()
+    mask = read_mask(args.mask, name="--mask", size=(height, width))
+    queries = sample_region_queries(mask, args.query_frame, stride=args.mask_stride)
+    check_num_points(len(queries), f"--mask {args.mask} with --mask-stride {args.mask_stride}")
+    return queries
 
 
 def _file_line(

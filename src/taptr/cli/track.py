@@ -20,7 +20,7 @@ from taptr.cli.options import (
     check_input_size,
     check_output_folder,
 )
-from taptr.cli.points import parse_points, read_points_file
+from taptr.cli.points import build_queries, check_listed_points, listed_points
 
 if TYPE_CHECKING:
     from taptr.api.predictor import Predictor
@@ -144,54 +144,6 @@ def check_track_arguments(args: argparse.Namespace) -> None:
         check_num_points(args.grid * args.grid, f"--grid {args.grid}")
 
 
-def listed_points(args: argparse.Namespace) -> np.ndarray | None:
-    """The queries of --points or --points-file (read before the video), else None."""
-    if args.points is not None:
-        return parse_points(args.points)
-    if args.points_file is not None:
-        return read_points_file(args.points_file)
-    return None
-
-
-def check_listed_points(
-    points: np.ndarray, info: VideoInfo, max_frames: int | None, flag: str
-) -> None:
-    """Checks listed queries against the video's size, before decoding the video.
-
-    Containers may state a wrong frame count, so queries at or beyond it are left to the
-    predictor, which checks them on the decoded frames.
-    """
-    from taptr.api.inputs import query_tensor
-
-    if info.num_frames is None:
-        return
-    num_frames = min(info.num_frames, max_frames or info.num_frames)
-    if float(points[:, 0].max()) >= num_frames:
-        return
-    try:
-        query_tensor(points, 1, num_frames, info.height, info.width)
-    except ValueError as error:
-        raise ValueError(f"{flag}: {error}") from None
-
-
-def build_queries(args: argparse.Namespace, num_frames: int, height: int, width: int) -> np.ndarray:
-    """The (N, 3) queries the arguments ask for, on a video of that many frames and size."""
-    from taptr.api.inputs import check_num_points, grid_queries
-    from taptr.editing import read_mask, sample_region_queries
-
-    listed = listed_points(args)
-    if listed is not None:
-        return listed
-    if not 0 <= args.query_frame < num_frames:
-        raise ValueError(f"--query-frame {args.query_frame} outside [0, {num_frames})")
-    if args.grid is not None:
-        return grid_queries(args.grid, args.query_frame, height, width, name="--grid").numpy()
-    mask = read_mask(args.mask, name="--mask", size=(height, width))
-    queries = sample_region_queries(mask, args.query_frame, stride=args.mask_stride)
-    check_num_points(len(queries), f"--mask {args.mask} with --mask-stride {args.mask_stride}")
-    return queries
-
-
 def load_predictor(args: argparse.Namespace) -> Predictor:
     """The predictor the model arguments describe."""
     from taptr.api.predictor import Predictor
@@ -221,7 +173,7 @@ def run(args: argparse.Namespace) -> int:
         info = {0: check_video(args, videos[0], listed)}  # before the model loads
     predictor = load_predictor(args)
     joined = join_process_group(predictor.device.type == "cuda")
-    outcomes = [
+    outcomes: list[tuple[str, str, tuple[int, int] | None]] = [
         (str(videos[i]), "skipped: already done", None)
         for i in my_share(len(videos))
         if i not in mine
