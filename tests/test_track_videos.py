@@ -105,3 +105,21 @@ def test_two_processes_write_the_same_files_as_one(clips, checkpoint, tmp_path, 
         two = load_tracks_npz(tmp_path / "two" / name / "tracks.npz")
         np.testing.assert_array_equal(one.tracks, two.tracks)
         np.testing.assert_array_equal(one.visibility, two.visibility)
+
+
+def test_a_truncated_video_is_tracked_in_memory_after_a_warning(checkpoint, tmp_path, caplog):
+    import logging
+
+    import av
+
+    rng = np.random.default_rng(0)
+    path = write_video(tmp_path / "v.mp4", rng.integers(0, 256, (12, 48, 64, 3), np.uint8), 10)
+    with av.open(str(path)) as container:
+        cut = [p.pos for p in container.demux(container.streams.video[0]) if p.size][5]
+    truncated = tmp_path / "truncated.mp4"
+    truncated.write_bytes(path.read_bytes()[:cut])  # declares 12 frames, decodes 5
+    args = ["track", str(truncated), "--grid", "2", "--checkpoint", str(checkpoint)]
+    with caplog.at_level(logging.WARNING), pytest.warns(UserWarning, match="declares 12"):
+        assert main([*args, "--out", str(tmp_path / "o")]) == 0
+    assert "tracking it in memory instead" in caplog.text
+    assert load_tracks_npz(tmp_path / "o" / "tracks.npz").tracks.shape == (5, 4, 2)
