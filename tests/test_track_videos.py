@@ -123,3 +123,28 @@ def test_a_truncated_video_is_tracked_in_memory_after_a_warning(checkpoint, tmp_
         assert main([*args, "--out", str(tmp_path / "o")]) == 0
     assert "tracking it in memory instead" in caplog.text
     assert load_tracks_npz(tmp_path / "o" / "tracks.npz").tracks.shape == (5, 4, 2)
+
+
+def test_edit_from_frame_0_streams_and_equals_the_in_memory_edit(clips, checkpoint, tmp_path):
+    import argparse
+
+    from taptr.cli.edit import _edited_frames
+    from taptr.editing import overlay_region, sample_region_queries
+
+    mask = np.zeros((48, 64), bool)
+    mask[14:30, 2:22] = True
+    overlay = np.zeros((8, 8, 3), np.uint8)
+    overlay[..., 2] = 255
+    video_path = clips / "a.mp4"
+    queries = sample_region_queries(mask, 0, stride=3)
+    predictor = taptr.Predictor.from_pretrained(checkpoint, device="cpu")
+    args = argparse.Namespace(video=str(video_path), max_frames=None, opacity=0.8)
+    streamed = np.stack(list(_edited_frames(args, predictor, queries, mask, overlay, 14)))
+    video = read_video(video_path)
+    result = predictor.track(video, queries, backward=True)
+    tracks, visibility = result.tracks[0].numpy(), result.visibility[0].numpy()
+    expected = overlay_region(video, overlay, mask, tracks, visibility, 0, opacity=0.8)
+    assert streamed.shape == expected.shape == (14, 48, 64, 3)
+    difference = np.abs(streamed.astype(int) - expected.astype(int))
+    assert difference.mean() < 0.05 and np.percentile(difference, 99) <= 2  # float32 noise
+    assert np.abs(streamed[0].astype(int) - video[0].astype(int)).max() > 100  # pasted

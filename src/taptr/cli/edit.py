@@ -3,14 +3,26 @@
 from __future__ import annotations
 
 import argparse
+import logging
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from taptr.cli.options import check_at_least, check_output_file
-from taptr.cli.track import add_model_arguments, check_model_arguments, load_predictor
+from taptr.cli.track import (
+    FrameCountError,
+    add_model_arguments,
+    check_model_arguments,
+    load_predictor,
+)
 
 if TYPE_CHECKING:
+    from collections.abc import Iterator
+
     import numpy as np
+
+    from taptr.api.predictor import Predictor
+
+logger = logging.getLogger(__name__)
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -20,7 +32,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="track a painted region and paste an image onto it in every frame",
         description="Samples points densely inside --mask on --query-frame, tracks them forwards "
         "and backwards, fits the region's motion per frame (RANSAC, outliers dropped) and warps "
-        "--overlay onto it, hidden where the region is occluded.",
+        "--overlay onto it, hidden where the region is occluded. With --query-frame 0 the video "
+        "is decoded, tracked, edited and encoded frame by frame (memory flat in its length); "
+        "otherwise it is read into memory first.",
     )
     parser.add_argument("video", help="video file or folder of images")
     parser.add_argument(
@@ -67,6 +81,15 @@ def run(args: argparse.Namespace) -> int:
     queries = sample_region_queries(mask, args.query_frame, stride=args.stride)
     check_num_points(len(queries), f"--mask {args.mask} with --stride {args.stride}")
     predictor = load_predictor(args)
+    if args.query_frame == 0 and info.num_frames is not None:
+        # nothing lies before frame 0: tracked forwards only, frame by frame
+        try:
+            edited = _edited_frames(args, predictor, queries, mask, overlay, info.num_frames)
+            path = write_video(args.out, edited, info.fps or 24.0)
+            print(f"tracked {len(queries)} region points; wrote {path}")
+            return 0
+        except FrameCountError as error:
+            logger.warning("%s; editing it in memory instead", error)
     video = read_video(args.video, max_frames=args.max_frames)
     num_frames = video.shape[0]
     if not args.query_frame < num_frames:
@@ -84,6 +107,40 @@ def run(args: argparse.Namespace) -> int:
     path = write_video(args.out, edited, info.fps or 24.0)
     print(f"tracked {len(queries)} region points; wrote {path}")
     return 0
+
+
+def _edited_frames(
+    args: argparse.Namespace,
+    predictor: Predictor,
+    queries: np.ndarray,
+    mask: np.ndarray,
+    overlay: np.ndarray,
+    declared: int,
+) -> Iterator[np.ndarray]:
+    """Edited frames, decoded, tracked and edited one window at a time (memory flat in T)."""
+    from tqdm.auto import tqdm
+
+    from taptr.api.streaming import track_frames
+    from taptr.editing import apply_overlay, prepare_overlay
+    from taptr.viz.video_io import iter_frames
+
+    num_frames = min(declared, args.max_frames or declared)
+    prepared = prepare_overlay(overlay, mask, queries[:, 1:])
+    frames = iter_frames(args.video, max_frames=args.max_frames)
+    with tqdm(total=num_frames, desc="editing", unit="frame") as bar:
+        try:
+            for batch in track_frames(predictor, frames, queries, num_frames=num_frames):
+                for frame, positions, visible in zip(
+                    batch.frames, batch.tracks, batch.visibility, strict=True
+                ):
+                    yield apply_overlay(frame, prepared, positions, visible, opacity=args.opacity)[
+                        0
+                    ]
+                bar.update(len(batch.frames))
+        except ValueError as error:
+            if "declared" in str(error):  # the container's frame count was wrong
+                raise FrameCountError(f"{args.video}: {error}") from None
+            raise
 
 
 def _read_overlay(path: str) -> np.ndarray:
