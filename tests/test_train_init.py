@@ -98,3 +98,24 @@ def test_train_command_errors_are_one_line(tmp_path, capsys):
     missing = tmp_path / "release.pth"
     assert cli_main(["train", "preset=small", "--init-from", str(missing)]) == 2
     assert f"checkpoint not found: {missing}" in capsys.readouterr().err
+
+
+def test_init_from_builds_no_second_model(tmp_path, monkeypatch):
+    import taptr.checkpoint as checkpoint_module
+
+    torch.manual_seed(6)
+    source = taptr.build_model("tiny")
+    taptr.save_checkpoint(source, tmp_path / "start.pt")
+    target = taptr.build_model("tiny")
+    built = []
+    real_build = checkpoint_module.build_model
+
+    def counting_build(config):
+        built.append(torch.empty(()).device.type)  # "meta" inside the shape check
+        return real_build(config)
+
+    monkeypatch.setattr(checkpoint_module, "build_model", counting_build)
+    checkpoint_module._skeleton.cache_clear()
+    init_from_checkpoint(target, str(tmp_path / "start.pt"))
+    assert "cpu" not in built  # only the meta-device skeleton of the shape check
+    assert all(torch.equal(target.state_dict()[k], v) for k, v in source.state_dict().items())

@@ -216,19 +216,14 @@ def _skeleton(config: ModelConfig) -> dict[str, Tensor]:
         return dict(build_model(config).state_dict())
 
 
-def _build_checked(config: ModelConfig, weights: Mapping[str, Any], source: str) -> TAPTR:
-    """Builds the model only once the weights match it (the check allocates nothing)."""
-    _check_against(_skeleton(config), weights, source)
-    return build_model(config)
-
-
-def model_from_checkpoint(
+def checkpoint_contents(
     checkpoint: Mapping[str, Any], source: str
-) -> tuple[TAPTR, dict[str, Tensor]]:
-    """Builds the model a loaded checkpoint describes and returns it with its weights.
+) -> tuple[ModelConfig, dict[str, Tensor]]:
+    """The model config and weights a loaded checkpoint holds, checked, with nothing built.
 
     The config is validated and the weights checked against the shapes and dtypes it
-    implies before any module is built, so a small file cannot build a large model.
+    implies on the meta device, so a small file cannot make anyone build a large model.
+    Official releases are converted to taptr's names.
 
     Args:
         checkpoint: the object read from the file.
@@ -245,19 +240,44 @@ def model_from_checkpoint(
             )
         config = _config(checkpoint.get("config"), source)
         weights = _weights(checkpoint, source)
-        return _build_checked(config, weights, source), weights
-    if looks_official(checkpoint):
+    elif looks_official(checkpoint):
         try:
-            converted, _ = convert_state_dict(official_weights(checkpoint))
+            weights, _ = convert_state_dict(official_weights(checkpoint))
         except ConversionError as error:
             raise CheckpointError(f"{source}: {error}") from None
-        config = taptrv1() if official_version(converted) == 1 else taptrv2()
-        return _build_checked(config, converted, source), converted
-    raise CheckpointError(
-        f"{source} is neither a taptr checkpoint (no 'format': 'taptr' entry) nor an official "
-        f"TAPTR release (no 'ema_model' / 'model' weights with official key names); "
-        f"top-level keys: {', '.join(map(str, list(checkpoint)[:10])) or 'none'}"
-    )
+        config = taptrv1() if official_version(weights) == 1 else taptrv2()
+    else:
+        raise CheckpointError(
+            f"{source} is neither a taptr checkpoint (no 'format': 'taptr' entry) nor an "
+            f"official TAPTR release (no 'ema_model' / 'model' weights with official key "
+            f"names); top-level keys: {', '.join(map(str, list(checkpoint)[:10])) or 'none'}"
+        )
+    _check_against(_skeleton(config), weights, source)
+    return config, weights
+
+
+def read_checkpoint(path: str | os.PathLike[str]) -> tuple[ModelConfig, dict[str, Tensor]]:
+    """The model config and weights of a checkpoint file, checked, without building a model.
+
+    For copying a file's weights into a model that exists already (fine-tuning).
+    """
+    return checkpoint_contents(_read_mapping(path), str(path))
+
+
+def model_from_checkpoint(
+    checkpoint: Mapping[str, Any], source: str
+) -> tuple[TAPTR, dict[str, Tensor]]:
+    """Builds the model a loaded checkpoint describes and returns it with its weights.
+
+    Args:
+        checkpoint: the object read from the file.
+        source: the file name, for messages.
+
+    Raises:
+        CheckpointError: unknown layout, invalid config, or weights that do not match.
+    """
+    config, weights = checkpoint_contents(checkpoint, source)
+    return build_model(config), weights
 
 
 def load_checkpoint(path: str | os.PathLike[str], *, device: str | torch.device = "cpu") -> TAPTR:
@@ -279,12 +299,17 @@ def load_checkpoint_and_threshold(
     path: str | os.PathLike[str], *, device: str | torch.device = "cpu"
 ) -> tuple[TAPTR, float | None]:
     """`load_checkpoint` and `read_visibility_threshold` of one file, reading it once."""
-    checkpoint = read_file(path)
-    if not isinstance(checkpoint, Mapping):
-        raise CheckpointError(f"{path} holds a {type(checkpoint).__name__}, not a checkpoint dict")
+    checkpoint = _read_mapping(path)
     model, weights = model_from_checkpoint(checkpoint, str(path))
     load_weights(model, weights, str(path))
     return model.to(device).eval(), _stored_threshold(checkpoint, str(path))
+
+
+def _read_mapping(path: str | os.PathLike[str]) -> Mapping[str, Any]:
+    checkpoint = read_file(path)
+    if not isinstance(checkpoint, Mapping):
+        raise CheckpointError(f"{path} holds a {type(checkpoint).__name__}, not a checkpoint dict")
+    return checkpoint
 
 
 def checkpoint_dict(

@@ -32,11 +32,6 @@ class CostVolume(nn.Module):
         self.query_proj = MLP(d_model, d_model, d_model, 2)
         self.fmap_mappers = nn.ModuleList(nn.Conv2d(d_model, d_model, 1) for _ in range(num_levels))
 
-    @property
-    def num_values(self) -> int:
-        """Correlation values handed to each layer: L · (2r + 1)²."""
-        return len(self.fmap_mappers) * (2 * self.radius + 1) ** 2
-
     def prepare(
         self, memory: Tensor, spatial_shapes: list[tuple[int, int]], content: Tensor
     ) -> list[Tensor]:

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import torch
 
-from taptr.checkpoint import load_checkpoint, load_weights, read_file
+from taptr.checkpoint import load_weights, read_checkpoint, read_file
 from taptr.model.taptr import TAPTR
 
 logger = logging.getLogger(__name__)
@@ -69,10 +69,12 @@ def init_backbone(model: TAPTR, setting: str) -> bool:
 def init_from_checkpoint(model: TAPTR, path: str) -> None:
     """Copies the weights of any checkpoint `taptr.load_checkpoint` reads (EMA when present).
 
+    The file's weights go straight into ``model``: no second model is built.
+
     Raises:
         taptr.checkpoint.CheckpointError: the checkpoint's model does not match, with the
             missing, unexpected and mis-shaped keys listed.
     """
-    source = load_checkpoint(path)
-    load_weights(model, source.state_dict(), str(path))
+    _, weights = read_checkpoint(path)
+    load_weights(model, weights, str(path))
     logger.info("weights initialised from %s", path)
