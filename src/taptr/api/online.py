@@ -44,6 +44,10 @@ from taptr.model.tracker import (
 from taptr.windows import window_ranges
 
 
+class FrameCountError(ValueError):
+    """A stream brought more or fewer frames than `OnlineTracker.start` was told."""
+
+
 @dataclass
 class StreamState:
     """Everything an online tracker knows about one stream.
@@ -187,7 +191,7 @@ class OnlineTracker:
         elif size != state.frame_size:
             raise ValueError(f"frame size changed from {state.frame_size} to {size}")
         if state.num_frames is not None and state.num_seen + chunk.shape[0] > state.num_frames:
-            raise ValueError(f"more frames than the declared {state.num_frames}")
+            raise FrameCountError(f"more frames than the declared {state.num_frames}")
         features = self.model.encode(self.predictor.prepare(chunk))
         state.spatial_shapes = features.spatial_shapes
         for offset in range(chunk.shape[0]):
@@ -206,7 +210,7 @@ class OnlineTracker:
         if state.num_seen == 0:
             raise ValueError("the stream has no frames")
         if state.num_frames is not None and state.num_seen != state.num_frames:
-            raise ValueError(
+            raise FrameCountError(
                 f"the stream ended after {state.num_seen} of {state.num_frames} declared frames"
             )
         ranges = window_ranges(state.num_seen, self.model.window_size, self.model.window_stride)

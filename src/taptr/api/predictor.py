@@ -222,7 +222,7 @@ class Predictor:
         real = queries.shape[0]  # context points come after the user's and are dropped
         positions = output.positions[0, :, :real].float()
         logits = output.visibility_logits[0, :, :real, 1].float()
-        if not (bool(torch.isfinite(positions).all()) and not bool(logits.isnan().any())):
+        if not bool(torch.isfinite(positions).all()) or bool(logits.isnan().any()):
             raise ValueError(
                 f"the model {self.source or '(unnamed)'} produced NaN or infinite tracks: its "
                 "weights are corrupt or were trained into divergence"

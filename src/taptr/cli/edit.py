@@ -8,12 +8,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from taptr.cli.options import check_at_least, check_output_file
-from taptr.cli.track import (
-    FrameCountError,
-    add_model_arguments,
-    check_model_arguments,
-    load_predictor,
-)
+from taptr.cli.track import add_model_arguments, check_model_arguments, load_predictor
 
 if TYPE_CHECKING:
     from collections.abc import Iterator
@@ -63,6 +58,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     """Tracks the region and writes the edited video."""
     from taptr.api.inputs import check_num_points
+    from taptr.api.online import FrameCountError
     from taptr.editing import overlay_region, read_mask, sample_region_queries
     from taptr.viz.video_io import read_video, video_info, write_video
 
@@ -88,8 +84,8 @@ def run(args: argparse.Namespace) -> int:
             path = write_video(args.out, edited, info.fps or 24.0)
             print(f"tracked {len(queries)} region points; wrote {path}")
             return 0
-        except FrameCountError as error:
-            logger.warning("%s; editing it in memory instead", error)
+        except FrameCountError as error:  # the container's frame count was wrong
+            logger.warning("%s: %s; editing it in memory instead", args.video, error)
     video = read_video(args.video, max_frames=args.max_frames)
     num_frames = video.shape[0]
     if not args.query_frame < num_frames:
@@ -128,19 +124,12 @@ def _edited_frames(
     prepared = prepare_overlay(overlay, mask, queries[:, 1:])
     frames = iter_frames(args.video, max_frames=args.max_frames)
     with tqdm(total=num_frames, desc="editing", unit="frame") as bar:
-        try:
-            for batch in track_frames(predictor, frames, queries, num_frames=num_frames):
-                for frame, positions, visible in zip(
-                    batch.frames, batch.tracks, batch.visibility, strict=True
-                ):
-                    yield apply_overlay(frame, prepared, positions, visible, opacity=args.opacity)[
-                        0
-                    ]
-                bar.update(len(batch.frames))
-        except ValueError as error:
-            if "declared" in str(error):  # the container's frame count was wrong
-                raise FrameCountError(f"{args.video}: {error}") from None
-            raise
+        for batch in track_frames(predictor, frames, queries, num_frames=num_frames):
+            for frame, positions, visible in zip(
+                batch.frames, batch.tracks, batch.visibility, strict=True
+            ):
+                yield apply_overlay(frame, prepared, positions, visible, opacity=args.opacity)[0]
+            bar.update(len(batch.frames))
 
 
 def _read_overlay(path: str) -> np.ndarray:

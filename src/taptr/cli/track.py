@@ -228,6 +228,8 @@ def track_video(
     info: VideoInfo,
 ) -> tuple[int, int]:
     """Tracks one video into ``out``; returns (frames, points)."""
+    from taptr.api.online import FrameCountError
+
     declared = info.num_frames
     if declared is not None and args.max_frames is not None:
         declared = min(declared, args.max_frames)
@@ -237,13 +239,9 @@ def track_video(
         )
         try:
             return _track_streaming(args, predictor, video, out, queries, info, declared)
-        except FrameCountError as error:
-            logger.warning("%s; tracking it in memory instead", error)
+        except FrameCountError as error:  # the container's frame count was wrong
+            logger.warning("%s: %s; tracking it in memory instead", video, error)
     return _track_in_memory(args, predictor, video, out, listed, info)
-
-
-class FrameCountError(ValueError):
-    """The video decodes to a different number of frames than its container says."""
 
 
 def _track_streaming(
@@ -271,18 +269,13 @@ def _track_streaming(
     def tracked():
         frames = iter_frames(video, max_frames=args.max_frames)
         with tqdm(total=num_frames, desc="tracking", unit="frame") as bar:
-            try:
-                for batch in track_frames(predictor, frames, queries, num_frames=num_frames):
-                    # tracks only, and a copy of the newest frame: a view would keep the
-                    # whole batch of frames alive
-                    kept.append((batch.tracks, batch.visibility))
-                    last_frame[0] = batch.frames[-1].copy()
-                    bar.update(len(batch.frames))
-                    yield batch
-            except ValueError as error:
-                if "declared" in str(error):  # the container's frame count was wrong
-                    raise FrameCountError(f"{video}: {error}") from None
-                raise
+            for batch in track_frames(predictor, frames, queries, num_frames=num_frames):
+                # tracks only, and a copy of the newest frame: a view would keep the
+                # whole batch of frames alive
+                kept.append((batch.tracks, batch.visibility))
+                last_frame[0] = batch.frames[-1].copy()
+                bar.update(len(batch.frames))
+                yield batch
 
     with result_folder(out, OUTPUT_NAMES) as staging:
         write_video(staging / "overlay.mp4", draw_final(tracked(), queries), info.fps or 24.0)
