@@ -1,15 +1,16 @@
 """The benchmark cases behind docs/BENCHMARKS.md, by name: ``python benchmarks/suite.py CASE``.
 
 Each case is one or more ``taptr bench`` commands (random weights and video, every speed-up
-against the faithful path in the same command). Results go to ``benchmarks/results/CASE*.json``
-(or ``--out``) and the printed tables go to the terminal; ``--dry-run`` lists the commands only.
+against the reference execution in the same command). Results go to
+``benchmarks/results/CASE*.json`` (or ``--out``) and the printed tables go to the terminal;
+``--dry-run`` lists the commands only.
 
 Cases:
-    headline   paper preset, 512×512, 24 frames, 800 points: faithful vs fast, FLOPs.
+    headline   paper preset, 512×512, 24 frames, 800 points: reference vs fast, FLOPs.
     versions   TAPTRv2 vs TAPTR v1 at 800 and 5000 points (the paper's efficiency table).
-    length     memory flat in video length: fast path at 24 and 300 frames.
-    points     10,000 vs 1,000 points at 256×256 (fast path; the faithful path's N×N masks
-               and all-frame features are the baseline at 1,000 points).
+    length     memory flat in video length: fast execution at 24 and 300 frames.
+    points     10,000 vs 1,000 points at 256×256 (fast execution; the reference execution's
+               N×N masks and all-frame features are the baseline at 1,000 points).
     gpu        800 and 5000 points on CUDA in float32 and bfloat16.
     smoke      a tiny case that runs in seconds (what CI runs through the test suite).
 """
@@ -28,20 +29,20 @@ CASES: dict[str, list[list[str]]] = {
     "headline": [["--preset", "taptrv2", "--frames", "24", "--points", "800", "--flops"]],
     "versions": [
         ["--preset", "taptrv2", "taptrv1", "--frames", "24", "--points", "800", "5000",
-         "--path", "fast", "--flops"],
+         "--execution", "fast", "--flops"],
     ],
     "length": [
-        ["--preset", "taptrv2", "--frames", "24", "--points", "800", "--path", "fast"],
-        ["--preset", "taptrv2", "--frames", "300", "--points", "800", "--path", "fast"],
+        ["--preset", "taptrv2", "--frames", "24", "--points", "800", "--execution", "fast"],
+        ["--preset", "taptrv2", "--frames", "300", "--points", "800", "--execution", "fast"],
     ],
     "points": [
         ["--preset", "taptrv2", "--frames", "24", "--size", "256", "256", "--points", "1000"],
         ["--preset", "taptrv2", "--frames", "24", "--size", "256", "256", "--points", "10000",
-         "--path", "fast"],
+         "--execution", "fast"],
     ],
     "gpu": [
         ["--preset", "taptrv2", "--frames", "24", "--points", "800", "5000", "--device", "cuda",
-         "--path", "fast", "--dtype", dtype]
+         "--execution", "fast", "--dtype", dtype]
         for dtype in ("float32", "bfloat16")
     ],
     "smoke": [

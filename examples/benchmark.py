@@ -6,8 +6,8 @@
 Times `taptr.Predictor.track` on a random video (the cost does not depend on the pixels)
 for each number of points, after one warm-up run, and reports seconds per frame and peak
 memory (resident set size of the process on CPU, allocated tensor memory on CUDA). Weights
-are random too: speed does not depend on them. ``taptr bench`` goes further (the faithful
-and fast paths side by side, a per-stage breakdown, FLOPs); docs/BENCHMARKS.md has figures.
+are random too: speed does not depend on them. ``taptr bench`` goes further (the reference
+and fast executions side by side, a per-stage breakdown, FLOPs); docs/BENCHMARKS.md has figures.
 """
 
 from __future__ import annotations

@@ -40,6 +40,7 @@ SECTIONS = {
         "taptr.config",
         "taptr.limits",
         "taptr.model.build",
+        "taptr.model.execution",
         "taptr.official",
     ],
     "Coordinates": ["taptr.geometry"],

@@ -12,12 +12,13 @@ def test_bench_command_on_a_tiny_case(tmp_path, capsys):
     argv = ["bench", "--preset", "tiny", "--frames", "9", "--points", "5", "--size", "32", "48"]
     assert main([*argv, "--threads", "1", "--flops", "--json", str(out)]) == 0
     printed = capsys.readouterr().out
-    assert "fast/faithful speed-up" in printed and "command: taptr" in printed
+    assert "fast/reference speed-up" in printed and "command: taptr" in printed
     data = json.loads(out.read_text())
     (case,) = data["cases"]
-    assert set(case["results"]) == {"faithful", "fast"}
+    assert set(case["results"]) == {"reference", "fast"}
     fast = case["results"]["fast"]
     assert fast["config"]["size"] == [32, 48] and fast["parameters"] > 0
+    assert fast["config"]["execution"] == "fast"
     assert fast["flops"] > 0 and fast["peak_rss"] > 0
     assert set(fast["stage_seconds"]) == {"backbone", "input_projections", "encoder", "decoder"}
     assert case["agreement"]["max_position_difference"] < 1e-4

@@ -1,6 +1,6 @@
-"""The numpy reference loop follows the PyTorch window driver rule for rule.
+"""The exported-graph backend of the window driver gives the model's own tracks.
 
-The loop runs here over the eager export wrappers (no export), so that every bookkeeping
+The graphs run here over the eager export wrappers (no export), so that every bookkeeping
 rule is checked quickly: window ranges, skipped windows, initialisation at the start
 frame, write-back and padding, the long-video content rule, v1's memory-efficient mode.
 """

@@ -9,7 +9,6 @@ import pytest
 import torch
 
 import taptr
-from taptr.model.ops import set_kernel
 from taptr.model.taptr import normalize_frames
 from tests.helpers import load_golden
 
@@ -35,11 +34,11 @@ def _point_major(x: torch.Tensor) -> np.ndarray:
     return x.transpose(0, 1).double().numpy()  # (T, N, ...) → (N, T, ...)
 
 
-@pytest.mark.parametrize("kernel", ["gather", "grid_sample"])
+@pytest.mark.parametrize("execution", ["fast", "reference"])
 @pytest.mark.parametrize("case", CASES)
-def test_outputs_match_official_float32(official_model, case, kernel):
+def test_outputs_match_official_float32(official_model, case, execution):
     golden = load_golden(case)
-    model = set_kernel(copy.deepcopy(official_model), kernel)
+    model = copy.deepcopy(official_model).set_execution(execution)
     out = taptr.official_forward(model, *_inputs(golden))
     positions, logits = _point_major(out["positions"]), _point_major(out["visibility_logits"])
     assert np.abs(positions - golden["out_pred_xy_norm"]).max() <= 3e-5

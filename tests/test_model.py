@@ -218,11 +218,10 @@ def test_official_forward_rejects_bad_inputs(tiny_model):
         )
 
 
-def test_fast_path_equals_faithful_path(generator):
-    from taptr.model.paths import use_path
-
+def test_fast_execution_equals_reference_execution(generator):
     torch.manual_seed(0)
     model = taptr.build_model("tiny").eval()
+    assert model.execution.name == "fast"  # the default
     video = _video(20, generator)
     # start frames inside windows give mixed tracked/untracked frames and points
     queries = QuerySet(
@@ -230,12 +229,18 @@ def test_fast_path_equals_faithful_path(generator):
         torch.rand(1, 6, 2, generator=generator),
         torch.ones(1, 6, dtype=torch.bool),
     )
-    fast = _track(use_path(model, "fast"), video, queries)
-    faithful = _track(use_path(model, "faithful"), video, queries)
+    fast = _track(model, video, queries)
+    reference = _track(model.set_execution("reference"), video, queries)
+    assert model.execution.name == "reference"
+    assert not torch.equal(fast.layer_positions, reference.layer_positions)  # really two ways
     # float32 noise of different summation orders, amplified by the random weights
-    torch.testing.assert_close(fast.layer_positions, faithful.layer_positions, atol=1e-4, rtol=0)
+    torch.testing.assert_close(fast.layer_positions, reference.layer_positions, atol=1e-4, rtol=0)
     torch.testing.assert_close(
-        fast.layer_visibility_logits, faithful.layer_visibility_logits, atol=1e-4, rtol=0
+        fast.layer_visibility_logits, reference.layer_visibility_logits, atol=1e-4, rtol=0
     )
-    with pytest.raises(ValueError, match="unknown path"):
-        use_path(model, "turbo")
+    training = _track(model.set_execution("training"), video, queries)
+    torch.testing.assert_close(
+        training.layer_positions, reference.layer_positions, atol=1e-4, rtol=0
+    )
+    with pytest.raises(ValueError, match="unknown execution"):
+        model.set_execution("turbo")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from taptr.model.ops import (
@@ -157,17 +158,41 @@ def test_gather_kernels_gradcheck(generator):
     )
 
 
-def test_set_kernel_switches_every_attention():
-    import pytest
-
+@pytest.mark.parametrize(
+    ("execution", "kernel"),
+    [("fast", "gather"), ("reference", "grid_sample"), ("training", "grid_sample")],
+)
+def test_the_execution_picks_every_attention_kernel(monkeypatch, execution, kernel):
+    import taptr.model.attention as attention
     from taptr import build_model
-    from taptr.model.ops import set_kernel
 
-    model = set_kernel(build_model("tiny"), "grid_sample")
-    kernels = {m.kernel for m in model.modules() if hasattr(m, "kernel")}
-    assert kernels == {"grid_sample"}
-    with pytest.raises(ValueError, match="unknown kernel"):
-        set_kernel(model, "cuda")
+    used = []
+
+    def spy(function):
+        def wrapped(kernel, *args):
+            used.append(kernel)
+            return function(kernel, *args)
+
+        return wrapped
+
+    monkeypatch.setattr(attention, "deform_attn", spy(attention.deform_attn))
+    monkeypatch.setattr(attention, "key_aware_attn", spy(attention.key_aware_attn))
+    model = build_model("tiny", execution=execution).eval()
+    assert model.execution.kernel == kernel
+    assert not any(hasattr(m, "kernel") for m in model.modules())  # no per-module mode
+    with torch.no_grad():
+        features = model.encode_images(torch.zeros(1, 3, 64, 64))
+        tracking = torch.ones(1, 1, 2, dtype=torch.bool)
+        model.decode_window(
+            features.memory[:, None],
+            features.spatial_shapes,
+            torch.zeros(1, 1, 2, 32),
+            torch.zeros(1, 1, 2, 4),
+            tracking,
+            tracking,
+        )
+    layers = len(model.encoder.layers) + len(model.decoder.layers)
+    assert used == [kernel] * layers
 
 
 def test_gather_kernel_at_and_beyond_the_far_border():

@@ -11,8 +11,8 @@ import torch
 import taptr
 from taptr.config import taptrv1, tiny
 from taptr.convert.official import convert_state_dict
-from taptr.model.cost_volume import CostVolume
 from taptr.model.taptr import normalize_frames
+from taptr.model.v1 import CostVolume
 from tests.helpers import FIXTURES, load_golden, tiny_v1
 
 

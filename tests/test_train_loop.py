@@ -167,3 +167,28 @@ def test_bf16_autocast_step_matches_fp32(data, tmp_path):
         )
         losses[precision] = step["loss"]
     assert losses["bf16"] == pytest.approx(losses["fp32"], rel=0.05)
+
+
+def test_resumed_schedule_follows_the_configured_milestones():
+    from taptr.train.optim import apply_milestones, build_optimizer
+
+    def schedule(milestones):
+        model = torch.nn.Linear(2, 2)
+        return build_optimizer(
+            model, lr=1.0, lr_backbone=1.0, weight_decay=0.0, milestones=milestones, gamma=0.1
+        )
+
+    optimizer, old = schedule((100,))
+    for _ in range(5):
+        optimizer.step()
+        old.step()
+    for milestones, expected in [((3,), 0.1), ((2, 4), 0.01), ((6,), 1.0)]:
+        optimizer, resumed = schedule(milestones)
+        resumed.load_state_dict(old.state_dict())
+        assert resumed.milestones == {100: 1}  # what a plain restore keeps
+        apply_milestones(resumed, milestones)
+        assert optimizer.param_groups[0]["lr"] == pytest.approx(expected)
+        optimizer.step()
+        resumed.step()  # step 6: a milestone at 6 drops the rate now
+        after = expected * (0.1 if 6 in milestones else 1.0)
+        assert optimizer.param_groups[0]["lr"] == pytest.approx(after)

@@ -3,15 +3,16 @@
 A run tracks N random points (all starting on frame 0) through T random frames with
 random (seeded) weights and reports wall time per frame, a per-stage breakdown (backbone,
 input projections, encoder, decoder), peak resident memory, peak CUDA memory, parameters
-and, optionally, FLOPs. Two paths are compared in the same command:
+and, optionally, FLOPs. Two executions (`taptr.model.execution`) are compared in the same
+command:
 
-- ``faithful``: the straightforward implementation (``grid_sample`` deformable attention,
-  N × N attention masks, every frame encoded up front in chunks of 24, as the official
-  evaluation does);
-- ``fast``: the default path (gather kernel, point attention on tracked points only,
-  frames encoded once per window and dropped when no window needs them).
+- ``reference``: the straightforward formulation (``grid_sample`` deformable attention,
+  N × N attention masks, MLPs on all rows at once), with every frame encoded up front in
+  chunks of 24, as the official evaluation does;
+- ``fast``: the default (gather kernel, point attention on tracked points only, MLPs in
+  row blocks), with frames encoded once per window and dropped when no window needs them.
 
-Each path runs in a fresh subprocess so that peak memory is its own. FLOPs come from
+Each execution runs in a fresh subprocess so that peak memory is its own. FLOPs come from
 ``torch.utils.flop_counter`` (2 per multiply-accumulate; convolutions, matmuls and
 attention counted with the math SDPA backend; bilinear sampling and gathers not counted).
 """
@@ -31,13 +32,17 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
 from torch import nn
 
-PATHS = ("faithful", "fast")
+if TYPE_CHECKING:
+    from taptr.model.taptr import TAPTR
+
+EXECUTIONS = ("reference", "fast")
+"""The executions `compare` runs, baseline first."""
 STAGES = ("backbone", "input_projections", "encoder", "decoder")
 
 
@@ -53,7 +58,7 @@ class BenchConfig:
         threads: torch CPU threads.
         device: ``cpu`` or ``cuda``.
         dtype: ``float32`` or ``bfloat16`` (autocast on CUDA only).
-        path: ``faithful`` or ``fast``.
+        execution: ``reference`` or ``fast`` (`taptr.model.execution.EXECUTIONS`).
         flops: also count FLOPs (a second, slower pass).
         seed: seed of the weights, video and queries.
     """
@@ -65,7 +70,7 @@ class BenchConfig:
     threads: int = 2
     device: str = "cpu"
     dtype: str = "float32"
-    path: str = "fast"
+    execution: str = "fast"
     flops: bool = False
     seed: int = 0
 
@@ -119,7 +124,7 @@ def _inputs(config: BenchConfig) -> tuple[torch.Tensor, Any]:
 
     generator = torch.Generator().manual_seed(config.seed)
     # uint8 frames, as a decoded video: holding 300 frames as float32 would be most of the
-    # fast path's memory
+    # fast execution's memory
     shape = (1, config.frames, 3, *config.size)
     video = torch.randint(0, 256, shape, generator=generator, dtype=torch.uint8)
     queries = QuerySet(
@@ -130,7 +135,7 @@ def _inputs(config: BenchConfig) -> tuple[torch.Tensor, Any]:
     return video, queries
 
 
-def _track(model: nn.Module, config: BenchConfig, video: torch.Tensor, queries: Any) -> Any:
+def _track(model: TAPTR, config: BenchConfig, video: torch.Tensor, queries: Any) -> Any:
     from taptr.model.frames import EncodedFrames, PrecomputedFrames
     from taptr.model.taptr import normalize_frames
     from taptr.model.tracker import QuerySet, run_windows
@@ -142,7 +147,8 @@ def _track(model: nn.Module, config: BenchConfig, video: torch.Tensor, queries: 
     def load(first: int, last: int) -> torch.Tensor:
         return normalize_frames(video[:, first : last + 1].float() / 255)
 
-    if config.path == "faithful":
+    frames: EncodedFrames | PrecomputedFrames
+    if config.execution == "reference":
         # the official code's way: the whole video in float, every frame encoded up front
         frames = PrecomputedFrames(model.encode(load(0, config.frames - 1), chunk_size=24))
     else:
@@ -153,12 +159,10 @@ def _track(model: nn.Module, config: BenchConfig, video: torch.Tensor, queries: 
 def run_case(config: BenchConfig, positions_out: str | None = None) -> BenchResult:
     """Runs one case in this process (use `run_isolated` for a clean peak-memory reading)."""
     from taptr.model.build import build_model
-    from taptr.model.paths import use_path
 
     torch.set_num_threads(config.threads)
     torch.manual_seed(config.seed)
-    model = build_model(config.preset).eval().to(config.device)
-    use_path(model, config.path)
+    model = build_model(config.preset, execution=config.execution).eval().to(config.device)
     video, queries = _inputs(config)
     autocast = torch.autocast("cuda", dtype=torch.bfloat16, enabled=config.dtype == "bfloat16")
     if config.device.startswith("cuda"):
@@ -190,7 +194,7 @@ def run_case(config: BenchConfig, positions_out: str | None = None) -> BenchResu
     )
 
 
-def _count_flops(model: nn.Module, config: BenchConfig, video: torch.Tensor, queries: Any) -> int:
+def _count_flops(model: TAPTR, config: BenchConfig, video: torch.Tensor, queries: Any) -> int:
     from torch.nn.attention import SDPBackend, sdpa_kernel
     from torch.utils.flop_counter import FlopCounterMode
 
@@ -212,20 +216,20 @@ def run_isolated(config: BenchConfig, positions_out: str | None = None) -> Bench
 
 
 def compare(base: BenchConfig) -> dict[str, Any]:
-    """Runs the faithful and the fast path of a case; returns both and their agreement."""
+    """Runs the reference and the fast execution of a case; returns both and their agreement."""
     results = {}
     with tempfile.TemporaryDirectory() as tmp:
-        for path in PATHS:
-            out = os.path.join(tmp, f"{path}.npy")
-            results[path] = run_isolated(_with(base, path=path), out)
-        faithful, fast = (np.load(os.path.join(tmp, f"{p}.npy")) for p in PATHS)
-        logits = [np.load(os.path.join(tmp, f"{p}.npy.logits.npy")) for p in PATHS]
+        for name in EXECUTIONS:
+            out = os.path.join(tmp, f"{name}.npy")
+            results[name] = run_isolated(_with(base, execution=name), out)
+        reference, fast = (np.load(os.path.join(tmp, f"{e}.npy")) for e in EXECUTIONS)
+        logits = [np.load(os.path.join(tmp, f"{e}.npy.logits.npy")) for e in EXECUTIONS]
     firm = np.abs(logits[0]) >= 1e-4
     agreement = {
-        "max_position_difference": float(np.abs(faithful - fast).max()),
+        "max_position_difference": float(np.abs(reference - fast).max()),
         "visibility_decisions_equal": bool(((logits[0] > 0) == (logits[1] > 0))[firm].all()),
-        "speedup": results["faithful"].seconds_per_frame / results["fast"].seconds_per_frame,
-        "memory_ratio": results["fast"].peak_rss / results["faithful"].peak_rss,
+        "speedup": results["reference"].seconds_per_frame / results["fast"].seconds_per_frame,
+        "memory_ratio": results["fast"].peak_rss / results["reference"].peak_rss,
     }
     return {"results": results, "agreement": agreement}
 
@@ -250,7 +254,7 @@ def machine() -> dict[str, Any]:
 def format_table(rows: list[BenchResult]) -> str:
     """A plain-text table of results."""
     header = (
-        f"{'preset':8} {'path':9} {'T':>4} {'N':>6} {'size':>9} {'s/frame':>8} "
+        f"{'preset':8} {'execution':9} {'T':>4} {'N':>6} {'size':>9} {'s/frame':>8} "
         + " ".join(f"{s[:8]:>8}" for s in STAGES)
         + f" {'peak RSS':>9} {'params':>11} {'GFLOP/frame':>11}"
     )
@@ -261,7 +265,7 @@ def format_table(rows: list[BenchResult]) -> str:
         gflops = f"{row.flops / c['frames'] / 1e9:11.1f}" if row.flops else f"{'-':>11}"
         size = f"{c['size'][0]}x{c['size'][1]}"
         lines.append(
-            f"{c['preset']:8} {c['path']:9} {c['frames']:4d} {c['points']:6d} {size:>9} "
+            f"{c['preset']:8} {c['execution']:9} {c['frames']:4d} {c['points']:6d} {size:>9} "
             f"{row.seconds_per_frame:8.3f} {stages} {row.peak_rss / 2**30:8.2f}G "
             f"{row.parameters:11,d} {gflops}"
         )

@@ -1,8 +1,8 @@
 """The sliding-window rules, in plain Python (no torch), shared by every window loop.
 
-The PyTorch driver (`taptr.model.tracker`), the online tracker and the exported-graph
-runner (`taptr.export.runner`, which runs without torch) all decode the same windows and
-hand the content over by the same rule.
+The one window driver (`taptr.model.tracker`) reads them for the model and for exported
+graphs alike (`taptr.export.runner` is a backend of that driver); the export manifest
+writes them down, without torch, for loops written in other languages.
 """
 
 from __future__ import annotations

@@ -1,8 +1,9 @@
 """Online tracking: feed frames as they arrive, add and remove points at any time.
 
 All state lives in an explicit `StreamState` that the caller holds and passes back in.
-Frames are encoded as they arrive and dropped once no window can read them, so memory is
-bounded by the window, not the stream.
+Frames are prepared as they arrive, encoded by the predictor's frame cache when the first
+window reads them (`taptr.api.stream_frames`), and dropped once no window can read them, so
+memory is bounded by the window, not the stream.
 
 A window is decoded once a frame after its last frame has arrived (so that a point added
 on the newest frame still joins it), and a frame's tracks are returned once no later
@@ -31,8 +32,9 @@ from torch import Tensor
 from taptr.api.context import with_context
 from taptr.api.inputs import query_tensor, video_tensor
 from taptr.api.predictor import Predictor
-from taptr.geometry import normalized_to_pixels, pixels_to_normalized
-from taptr.model.taptr import FrameFeatures
+from taptr.api.queries import model_queries, on_own_frames
+from taptr.api.stream_frames import StreamFrames
+from taptr.geometry import normalized_to_pixels
 from taptr.model.tracker import (
     QuerySet,
     TrackerState,
@@ -59,8 +61,8 @@ class StreamState:
         num_seen: frames received so far.
         emitted: frames [0, emitted) have been returned.
         last_decoded: last frame of the last decoded window (−1 before the first).
-        encoded: encoder memory (1, S, C) of the frames still needed, by frame index.
-        spatial_shapes: (H_l, W_l) of the memory levels.
+        encoded: the frames still needed (prepared ones waiting for their first window and
+            the encoded window the frame cache keeps); ``len`` counts them.
         queries: (N, 3) float32 (t, x, y) pixels of the current points.
         point_ids: identifier of each current point, in order.
         next_id: identifier of the next point added.
@@ -71,11 +73,10 @@ class StreamState:
     tracker: TrackerState
     num_frames: int | None
     frame_size: tuple[int, int] | None
+    encoded: StreamFrames
     num_seen: int = 0
     emitted: int = 0
     last_decoded: int = -1
-    encoded: dict[int, Tensor] = field(default_factory=dict)
-    spatial_shapes: list[tuple[int, int]] = field(default_factory=list)
     queries: Tensor = field(default_factory=lambda: torch.zeros(0, 3))
     point_ids: list[int] = field(default_factory=list)
     next_id: int = 0
@@ -118,14 +119,10 @@ class OnlineTracker:
             num_frames: total length, when known (makes long streams equal to offline).
             frame_size: (H, W) of the frames, needed to add queries before the first frame.
         """
-        device = self.predictor.device
-        empty = QuerySet(
-            torch.zeros(1, 0, dtype=torch.long, device=device),
-            torch.zeros(1, 0, 2, device=device, dtype=self.predictor.dtype),
-            torch.zeros(1, 0, dtype=torch.bool, device=device),
-        )
-        tracker = start_state(self.model, empty, num_frames, self.predictor.dtype)
-        return StreamState(tracker, num_frames, frame_size)
+        device, dtype = self.predictor.device, self.predictor.dtype
+        empty = model_queries(torch.zeros(0, 3), 1, 1, device, dtype)  # no points: any size
+        tracker = start_state(self.model, empty, num_frames, dtype)
+        return StreamState(tracker, num_frames, frame_size, StreamFrames(self.model))
 
     def add_queries(self, state: StreamState, queries: np.ndarray | Tensor) -> list[int]:
         """Adds points given as (N, 3) (t, x, y) pixels; returns their identifiers.
@@ -140,21 +137,10 @@ class OnlineTracker:
             )
         height, width = state.frame_size
         new = query_tensor(queries, 1, state.num_frames, height, width)[0]  # (N, 3)
-        t = new[:, 0]
-        if bool((t <= state.last_decoded).any()):
+        if bool((new[:, 0] <= state.last_decoded).any()):
             raise ValueError(f"query frames must come after frame {state.last_decoded}")
-        device = self.predictor.device
-        add_points(
-            self.model,
-            state.tracker,
-            QuerySet(
-                t.long()[None].to(device),
-                pixels_to_normalized(new[None, :, 1:], height, width).to(
-                    device, self.predictor.dtype
-                ),
-                torch.ones(1, new.shape[0], dtype=torch.bool, device=device),
-            ),
-        )
+        points = model_queries(new, height, width, self.predictor.device, self.predictor.dtype)
+        add_points(self.model, state.tracker, points)
         ids = list(range(state.next_id, state.next_id + new.shape[0]))
         state.next_id += new.shape[0]
         state.point_ids += ids
@@ -192,10 +178,7 @@ class OnlineTracker:
             raise ValueError(f"frame size changed from {state.frame_size} to {size}")
         if state.num_frames is not None and state.num_seen + chunk.shape[0] > state.num_frames:
             raise FrameCountError(f"more frames than the declared {state.num_frames}")
-        features = self.model.encode(self.predictor.prepare(chunk))
-        state.spatial_shapes = features.spatial_shapes
-        for offset in range(chunk.shape[0]):
-            state.encoded[state.num_seen + offset] = features.memory[:, offset]
+        state.encoded.add(state.num_seen, self.predictor.prepare(chunk))
         state.num_seen += chunk.shape[0]
         while True:
             window = self._next_window(state)
@@ -260,12 +243,7 @@ class OnlineTracker:
     def _decode(self, state: StreamState, first: int, last: int) -> None:
         if not state.context_added:
             self._add_context(state)
-
-        def source(a: int, b: int) -> FrameFeatures:
-            memory = torch.stack([state.encoded[f] for f in range(a, b + 1)], dim=1)
-            return FrameFeatures(memory, state.spatial_shapes)
-
-        decode_window(self.model, state.tracker, first, last, source)
+        decode_window(self.model, state.tracker, first, last, state.encoded)
         state.last_decoded = last
 
     def _emit(self, state: StreamState, bound: int) -> StreamUpdate:
@@ -279,22 +257,20 @@ class OnlineTracker:
         else:
             positions = torch.zeros(0, len(state.point_ids), 2)
             logits = torch.zeros(0, len(state.point_ids))
-        tracks = normalized_to_pixels(positions.float().cpu(), height, width)
-        logits = logits.float().cpu()
-        frames = torch.arange(first, max(bound, first))[:, None]
-        starts = state.queries[:, 0].long()[None]
-        logits = logits.masked_fill(frames < starts, float("-inf"))
-        at_query = frames == starts  # (F, N)
-        tracks = torch.where(at_query[..., None], state.queries[None, :, 1:], tracks)
-        logits = logits.masked_fill(at_query, float("inf"))
+        tracks, logits = on_own_frames(
+            normalized_to_pixels(positions.float().cpu(), height, width),
+            logits.float().cpu(),
+            state.queries,
+            first,
+            hide_earlier=True,  # a stream only tracks forward in time
+        )
         state.emitted = max(bound, first)
         self._release(state, state.emitted)
         visibility = logits.sigmoid() > self.predictor.visibility_threshold
         return StreamUpdate(first, tracks, visibility, logits, list(state.point_ids))
 
     def _release(self, state: StreamState, before: int) -> None:
-        for frame in [f for f in state.encoded if f < before]:
-            del state.encoded[frame]
+        state.encoded.release(before)
         tracker = state.tracker
         for trajectory in [
             tracker.content,

@@ -22,13 +22,15 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
+from taptr.api.backward import needs_backward, track_both_ways
 from taptr.api.context import with_context
 from taptr.api.inputs import grid_queries, query_tensor, video_tensor
+from taptr.api.queries import model_queries, on_own_frames
 from taptr.api.resize import resize_frames
-from taptr.geometry import normalized_to_pixels, pixels_to_normalized
+from taptr.geometry import normalized_to_pixels
 from taptr.model.frames import EncodedFrames
 from taptr.model.taptr import TAPTR, normalize_frames
-from taptr.model.tracker import QuerySet, run_windows
+from taptr.model.tracker import run_windows
 from taptr.types import TrackingResult
 from taptr.windows import window_ranges
 
@@ -151,7 +153,9 @@ class Predictor:
         assert queries is not None
         query = query_tensor(queries, batch, num_frames, height, width)
         windows = len(window_ranges(num_frames, self.model.window_size, self.model.window_stride))
-        total = batch * windows * (2 if backward else 1)
+        # the reversed pass runs only for videos with a query after frame 0
+        passes = sum(1 + (backward and needs_backward(query[b])) for b in range(batch))
+        total = windows * passes
         with tqdm(total=total, desc="tracking", unit="window", disable=not progress) as bar:
             results = [
                 self._track_one(frames[b], query[b], backward, bar.update) for b in range(batch)
@@ -176,23 +180,15 @@ class Predictor:
         self, frames: Tensor, queries: Tensor, backward: bool, on_window: Callable[[], object]
     ) -> tuple[Tensor, Tensor]:
         """One video: frames (T, 3, H, W), queries (N, 3) → tracks (T, N, 2), logits (T, N)."""
-        num_frames = frames.shape[0]
-        starts = queries[:, 0].long()
-        tracks, logits = self._forward_pass(frames, queries, on_window, reverse=False)
-        before = torch.arange(num_frames)[:, None] < starts[None]  # (T, N)
+
+        def one_pass(pass_queries: Tensor, reverse: bool) -> tuple[Tensor, Tensor]:
+            return self._forward_pass(frames, pass_queries, on_window, reverse)
+
         if backward:
-            flipped = queries.clone()
-            flipped[:, 0] = num_frames - 1 - queries[:, 0]
-            back_tracks, back_logits = self._forward_pass(frames, flipped, on_window, reverse=True)
-            tracks = torch.where(before[..., None], back_tracks.flip(0), tracks)
-            logits = torch.where(before, back_logits.flip(0), logits)
+            tracks, logits = track_both_ways(one_pass, queries, frames.shape[0])
         else:
-            logits = logits.masked_fill(before, float("-inf"))
-        # each query comes back exactly where it was given, visible
-        points = torch.arange(queries.shape[0])
-        tracks[starts, points] = queries[:, 1:]
-        logits[starts, points] = float("inf")
-        return tracks, logits
+            tracks, logits = one_pass(queries, False)
+        return on_own_frames(tracks, logits, queries, hide_earlier=not backward)
 
     def _forward_pass(
         self, frames: Tensor, queries: Tensor, on_window: Callable[[], object], reverse: bool
@@ -203,12 +199,8 @@ class Predictor:
         window by window, without a reversed copy of the whole video.
         """
         num_frames, _, height, width = frames.shape
-        device, dtype = self.device, self.dtype
-        query_set = QuerySet(
-            queries[None, :, 0].long().to(device),
-            pixels_to_normalized(queries[None, :, 1:], height, width).to(device, dtype),
-            torch.ones(1, queries.shape[0], dtype=torch.bool, device=device),
-        )
+        dtype = self.dtype
+        query_set = model_queries(queries, height, width, self.device, dtype)
         query_set = with_context(query_set, self.context_points, self.input_size, num_frames)
 
         def load(first: int, last: int) -> Tensor:

@@ -1,4 +1,4 @@
-"""``taptr bench``: time and memory of the faithful and the fast path, side by side."""
+"""``taptr bench``: time and memory of the reference and the fast execution, side by side."""
 
 from __future__ import annotations
 
@@ -20,10 +20,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "bench",
         help="measure speed, memory and FLOPs (random weights and video)",
-        description="Runs each preset × points case on the faithful path (grid_sample attention, "
-        "all frames encoded up front) and the fast path (gather attention, frames encoded per "
-        "window), each in its own process, and reports seconds per frame, a per-stage breakdown, "
-        "peak memory and the agreement of their outputs.",
+        description="Runs each preset × points case in the reference execution (grid_sample "
+        "attention, N × N point-attention masks, all frames encoded up front) and the fast one "
+        "(gather attention, point attention on tracked points, frames encoded per window), each "
+        "in its own process, and reports seconds per frame, a per-stage breakdown, peak memory "
+        "and the agreement of their outputs.",
     )
     parser.add_argument(
         "--preset",
@@ -61,10 +62,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="dtype of weights and activations (default float32)",
     )
     parser.add_argument(
-        "--path",
-        choices=["both", "fast", "faithful"],
+        "--execution",
+        choices=["both", "fast", "reference"],
         default="both",
-        help="which path to measure; both also compares their outputs (default both)",
+        help="which execution to measure; both also compares their outputs (default both)",
     )
     parser.add_argument("--flops", action="store_true", help="also count FLOPs (slower)")
     parser.add_argument("--json", metavar="FILE", help="write all results to this JSON file")
@@ -98,20 +99,21 @@ def run(args: argparse.Namespace) -> int:
                 dtype=args.dtype,
                 flops=args.flops,
             )
-            if args.path == "both":
+            if args.execution == "both":
                 case = compare(config)
                 rows += list(case["results"].values())
                 cases.append({"preset": preset, "points": points, **case})
             else:
-                result = run_isolated(BenchConfig(**{**config.__dict__, "path": args.path}))
+                chosen = args.execution
+                result = run_isolated(BenchConfig(**{**config.__dict__, "execution": chosen}))
                 rows.append(result)
-                cases.append({"preset": preset, "points": points, "results": {args.path: result}})
+                cases.append({"preset": preset, "points": points, "results": {chosen: result}})
     print(format_table(rows))
     for case in cases:
         agreement = case.get("agreement")
         if agreement:
             print(
-                f"{case['preset']} N={case['points']}: fast/faithful speed-up "
+                f"{case['preset']} N={case['points']}: fast/reference speed-up "
                 f"{agreement['speedup']:.2f}x, peak RSS ratio {agreement['memory_ratio']:.2f}, "
                 f"max |Δ position| {agreement['max_position_difference']:.2e}, "
                 f"visibility decisions equal: {agreement['visibility_decisions_equal']}"
@@ -123,7 +125,8 @@ def run(args: argparse.Namespace) -> int:
             if row.flops:
                 achieved = row.flops / (row.seconds_per_frame * row.config["frames"])
                 print(
-                    f"  {row.config['preset']} {row.config['path']} N={row.config['points']}: "
+                    f"  {row.config['preset']} {row.config['execution']} "
+                    f"N={row.config['points']}: "
                     f"{achieved / 1e9:.0f} GFLOP/s = {achieved / rate:.0%} of peak"
                 )
     print(f"command: {command}")

@@ -21,11 +21,11 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from taptr.api import TAPTR, normalize_frames
 from taptr.api.context import PREFIX_FRAMES, ContextPoints, draw_context
 from taptr.eval.queries import QueryPoints
 from taptr.eval.tracker import query_frames, track_both_ways
 from taptr.geometry import normalized_to_pixels, pixels_to_normalized
-from taptr.model.taptr import TAPTR, normalize_frames
 from taptr.official import official_forward
 
 NUM_QUERIES = 800

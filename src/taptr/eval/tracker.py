@@ -4,7 +4,8 @@
 forward in time is run twice: on the video, and on the time-reversed video with each query
 frame t mapped to T − 1 − t; frames before a query come from the reversed pass (flipped back),
 the query frame and later ones from the forward pass (TAPVID-PROTOCOL.md §1.7, TAPTRv2-SPEC.md
-§4.4).
+§4.4). The rule itself is the predictor's (`taptr.api.backward`); this module adapts numpy
+trackers to it.
 """
 
 from __future__ import annotations
@@ -64,19 +65,19 @@ def track_both_ways(
     Returns:
         tracks (T, N, 2) (x, y) pixels and visible (T, N) bool on every frame.
     """
-    tracks, visible = _checked(track(video, queries), video, queries)
-    frames = query_frames(queries)
-    if not (frames > 0).any():
-        return tracks, visible
-    reversed_queries = np.array(queries, dtype=np.float64, copy=True)
-    reversed_queries[:, 0] = video.shape[0] - 1 - reversed_queries[:, 0]
-    back_tracks, back_visible = _checked(
-        track(np.ascontiguousarray(video[::-1]), reversed_queries), video, queries
-    )
-    before = np.arange(video.shape[0])[:, None] < frames[None, :]  # (T, N)
-    tracks = np.where(before[..., None], back_tracks[::-1], tracks)
-    visible = np.where(before, back_visible[::-1], visible)
-    return tracks, visible
+    # imported here: `taptr.eval` itself (the metric) needs numpy only, not torch
+    import torch
+
+    from taptr.api.backward import track_both_ways as fuse_both_ways
+
+    def one_pass(pass_queries: torch.Tensor, reverse: bool) -> tuple[torch.Tensor, torch.Tensor]:
+        frames = np.ascontiguousarray(video[::-1]) if reverse else video
+        tracks, visible = _checked(track(frames, pass_queries.numpy()), video, queries)
+        return torch.tensor(tracks), torch.tensor(visible)  # copies: outputs may be read-only
+
+    float_queries = torch.tensor(np.asarray(queries, dtype=np.float64))
+    tracks, visible = fuse_both_ways(one_pass, float_queries, video.shape[0])
+    return tracks.numpy(), visible.numpy()
 
 
 def run_tracker(

@@ -2,13 +2,15 @@
 
 - `export_model(model, directory, "onnx" | "torchscript")` writes three graphs and a
   manifest (`taptr.export.graphs`);
-- `track_points(steps, manifest, frames, ...)` is the reference sliding-window loop over
-  them, in numpy (`taptr.export.runner`), with `load_steps(directory)` for the graphs, and
-  `track_video` the same in input pixels with (t, x, y) queries (`taptr.export.video`);
+- `track_points(steps, manifest, frames, ...)` tracks with them through the model's own
+  sliding-window driver (`taptr.export.runner`, whose `GraphBackend` adapts the graphs to
+  `taptr.model.tracker`), with `load_steps(directory)` for the graphs, and `track_video`
+  the same in input pixels with (t, x, y) queries (`taptr.export.video`);
 - `compare(model, directory)` checks an export against the model (`taptr.export.verify`);
 - `compile_model(model)` is the optional ``torch.compile`` path for PyTorch inference.
 
-Names are imported on first use, so that the runner works without torch.
+Names are imported on first use, so that importing the package loads neither the
+exporters nor onnxruntime.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ _EXPORTS = {
     "ExportManifest": "taptr.export.manifest",
     "track_points": "taptr.export.runner",
     "TrackArrays": "taptr.export.runner",
+    "GraphBackend": "taptr.export.runner",
     "track_video": "taptr.export.video",
     "load_steps": "taptr.export.backends",
     "OnnxSteps": "taptr.export.backends",

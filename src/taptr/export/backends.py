@@ -1,7 +1,8 @@
 """Running exported graphs: onnxruntime sessions or TorchScript modules behind one interface.
 
-Both classes implement `taptr.export.runner.Steps` (numpy in, numpy out), so the same
-reference loop drives either format. `load_steps` picks the class from the manifest.
+Both classes implement `taptr.export.runner.Steps` (numpy in, numpy out), which
+`taptr.export.runner.GraphBackend` puts under the model's own window driver, whichever the
+format. `load_steps` picks the class from the manifest.
 """
 
 from __future__ import annotations

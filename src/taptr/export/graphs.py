@@ -29,7 +29,6 @@ from torch import Tensor, nn
 
 from taptr.export.manifest import INPUT_NAMES, OUTPUT_NAMES, ExportFormat, ExportManifest
 from taptr.export.modules import FrameEncoder, PointInitializer, WindowDecoder, feature_shapes
-from taptr.model.paths import use_path
 from taptr.model.taptr import TAPTR
 
 ONNX_OPSET = 18
@@ -39,10 +38,10 @@ ONNX_OPSET = 18
 def prepare_for_export(model: TAPTR) -> TAPTR:
     """A float32 CPU copy in eval mode with export-friendly kernels; ``model`` is untouched."""
     prepared = copy.deepcopy(model).float().cpu().eval()
-    # the faithful path: the grouped point attention loops over frames with data-dependent
-    # sizes (the masked path computes the same kept outputs in one batched call), and the
-    # MLPs' row blocks would be traced as a loop of out= products
-    return use_path(prepared, "faithful")
+    # the reference execution: the grouped point attention loops over frames with
+    # data-dependent sizes (the masked formulation computes the same kept outputs in one
+    # batched call), and the MLPs' row blocks would be traced as a loop of out= products
+    return prepared.set_execution("reference")
 
 
 def _manifest(

@@ -2,7 +2,7 @@
 
 An export folder holds three graphs (`GRAPHS`) and ``taptr-export.json``; a loop in any
 language needs nothing else. This module reads and writes that file with the standard
-library only, so the reference runner does not need torch.
+library only, so a program that only reads the manifest does not need torch.
 """
 
 from __future__ import annotations

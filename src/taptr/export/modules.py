@@ -3,7 +3,7 @@
 The sliding-window loop (`taptr.model.tracker`) is Python bookkeeping around three
 tensor functions; each wrapper below is one of them with plain tensor inputs and outputs
 and batch size one, so that it can be traced or exported and driven by a loop written in
-any language (see `taptr.export.runner` for the reference loop):
+any language (`taptr.export.runner` drives them through the same window driver):
 
 - `FrameEncoder`: backbone, input projections and deformable encoder of some frames.
 - `PointInitializer`: the initial content of points from the memory of their start frame.

@@ -1,9 +1,9 @@
 """Checking exported graphs against the PyTorch model on a clip: parity and speed.
 
-`compare` tracks the same points through the same frames twice, with the model's own
-sliding-window driver (`taptr.model.tracker.run_windows`, the model's current attention
-kernel) and with the exported graphs driven by the numpy reference loop, and reports the
-largest differences and the time each took.
+`compare` tracks the same points through the same frames twice with the one
+sliding-window driver (`taptr.model.tracker.run_windows`): over the PyTorch model (its
+current attention kernel) and over the exported graphs (`taptr.export.runner`), and reports
+the largest differences and the time each took.
 """
 
 from __future__ import annotations

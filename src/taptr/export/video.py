@@ -1,4 +1,4 @@
-"""Pixels in, pixels out over exported graphs: the predictor's conventions without torch.
+"""Pixels in, pixels out over exported graphs, with the predictor's conventions.
 
 `track_video` takes a uint8 video and (t, x, y) pixel queries, resizes frames to the
 export's input size window by window, runs `taptr.export.runner.track_points`, and maps the
@@ -8,7 +8,8 @@ frame, visible.
 
 Resizing uses OpenCV (area averaging when shrinking, bilinear when enlarging), close to but
 not bit-equal with the predictor's antialiased bilinear resize; frames already at the
-input size are used as they are.
+input size are used as they are. The window loop is the model's own (it needs torch, on
+the CPU; the network runs in the graphs).
 """
 
 from __future__ import annotations

@@ -1,16 +1,20 @@
 """The TAPTRv2 network: modules, the window driver and the builder."""
 
 from taptr.model.build import build_model
+from taptr.model.execution import EXECUTIONS, Execution, get_execution
 from taptr.model.taptr import TAPTR, FrameFeatures, normalize_frames
 from taptr.model.tracker import QuerySet, TrackerState, TrackOutput, run_windows, window_ranges
 
 __all__ = [
+    "EXECUTIONS",
     "TAPTR",
+    "Execution",
     "FrameFeatures",
     "QuerySet",
     "TrackOutput",
     "TrackerState",
     "build_model",
+    "get_execution",
     "normalize_frames",
     "run_windows",
     "window_ranges",

@@ -13,6 +13,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from taptr.model.execution import Execution
 from taptr.model.ops import deform_attn, key_aware_attn
 from taptr.model.ops.gather import interleaved_sizes
 
@@ -77,7 +78,6 @@ class DeformableAttention(nn.Module):
         self.attention_weights = nn.Linear(d_model, samples)
         self.value_proj = nn.Linear(d_model, d_model)
         self.output_proj = nn.Linear(d_model, d_model)
-        self.kernel = "gather"
         self.reset_parameters()
 
     def reset_parameters(self) -> None:
@@ -99,6 +99,7 @@ class DeformableAttention(nn.Module):
         reference: Tensor,
         memory: Tensor,
         spatial_shapes: list[tuple[int, int]],
+        execution: Execution,
     ) -> DeformableOutput:
         """Attends from each query to the memory around its reference point.
 
@@ -107,6 +108,7 @@ class DeformableAttention(nn.Module):
             reference: (B, Q, 2) reference (x, y) in [0, 1].
             memory: (B, S, C) flattened multi-scale tokens (values come from here).
             spatial_shapes: (H_l, W_l) of the L levels.
+            execution: how to run; its ``kernel`` samples the memory.
         """
         batch, queries, _ = query.shape
         m, lv, p = self.num_heads, self.num_levels, self.num_points
@@ -115,7 +117,7 @@ class DeformableAttention(nn.Module):
         weights = logits.softmax(-1).view(batch, queries, m, lv, p)
         locations = sampling_locations(reference, offsets, spatial_shapes)
         output = deform_attn(
-            self.kernel, memory, self.value_proj, spatial_shapes, locations, weights
+            execution.kernel, memory, self.value_proj, spatial_shapes, locations, weights
         )
         return DeformableOutput(
             self.output_proj(output), logits.view(batch, queries, m, lv, p), offsets
@@ -141,7 +143,6 @@ class KeyAwareDeformableAttention(nn.Module):
         self.key_proj = nn.Linear(d_model, d_model)
         self.query_proj = nn.Linear(d_model, d_model)
         self.output_proj = nn.Linear(d_model, d_model)
-        self.kernel = "gather"
         self.reset_parameters()
 
     def reset_parameters(self) -> None:
@@ -161,6 +162,7 @@ class KeyAwareDeformableAttention(nn.Module):
         reference: Tensor,
         memory: Tensor,
         spatial_shapes: list[tuple[int, int]],
+        execution: Execution,
     ) -> DeformableOutput:
         """Attends from each query to keys and values sampled around its reference point.
 
@@ -169,6 +171,7 @@ class KeyAwareDeformableAttention(nn.Module):
             reference: (B, Q, 2) reference (x, y) in [0, 1].
             memory: (B, S, C) flattened multi-scale tokens.
             spatial_shapes: (H_l, W_l) of the L levels.
+            execution: how to run; its ``kernel`` samples the keys and values.
         """
         batch, queries, _ = query.shape
         m, lv, p = self.num_heads, self.num_levels, self.num_points
@@ -176,7 +179,7 @@ class KeyAwareDeformableAttention(nn.Module):
         offsets = self.sampling_offsets(query).view(batch, queries, m, lv, p, 2)
         locations = sampling_locations(reference, offsets, spatial_shapes)
         output, logits = key_aware_attn(
-            self.kernel,
+            execution.kernel,
             projected,
             memory,
             self.key_proj,

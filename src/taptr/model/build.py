@@ -20,13 +20,14 @@ from taptr.model.attention import (
     MultiheadAttention,
 )
 from taptr.model.backbone import Backbone, ConvNet, InputProjections, ResNet50Body
-from taptr.model.cost_volume import CostVolume
 from taptr.model.decoder import Decoder, DecoderLayer
 from taptr.model.encoder import Encoder, EncoderLayer
+from taptr.model.execution import DEFAULT_EXECUTION, Execution, get_execution
 from taptr.model.layers import MLP
-from taptr.model.position_update import PositionUpdate
+from taptr.model.position_update import PositionUpdate, refine_updated
 from taptr.model.query_init import QueryInitializer
 from taptr.model.taptr import TAPTR
+from taptr.model.v1 import CostVolume, V1Decoder, V1DecoderLayer, look_forward_twice
 
 COST_VOLUME_RADIUS = 3
 """TAPTR v1 samples 7×7 correlation windows."""
@@ -60,35 +61,32 @@ def _build_decoder_layer(config: ModelConfig) -> DecoderLayer:
     else:
         cross = DeformableAttention(c, m, lv, p)
     update = PositionUpdate(m * lv * p, c, config.disentangler) if config.position_update else None
-    corr_values = lv * (2 * COST_VOLUME_RADIUS + 1) ** 2
-    return DecoderLayer(
-        cross,
-        update,
-        MultiheadAttention(c, m) if config.temporal_attention else None,
-        MultiheadAttention(c, m) if config.point_attention else None,
-        c,
-        config.ffn_dim,
-        config.sine_temperature,
-        cross_attention_first=config.version == 2,
-        corr_fuser=MLP(c + corr_values, c, c, 2) if config.cost_volume else None,
-    )
+    temporal = MultiheadAttention(c, m) if config.temporal_attention else None
+    points = MultiheadAttention(c, m) if config.point_attention else None
+    if config.version == 1:
+        # v1 has no position update and plain cross-attention (checked by the config)
+        assert update is None and isinstance(cross, DeformableAttention)
+        corr_values = lv * (2 * COST_VOLUME_RADIUS + 1) ** 2
+        fuser = MLP(c + corr_values, c, c, 2) if config.cost_volume else None
+        return V1DecoderLayer(
+            cross, temporal, points, c, config.ffn_dim, config.sine_temperature, fuser
+        )
+    return DecoderLayer(cross, update, temporal, points, c, config.ffn_dim, config.sine_temperature)
 
 
 def _build_decoder(config: ModelConfig) -> Decoder:
     c = config.d_model
     fuser = MLP(2 * c, c, c, 3) if config.position_update else None
     layers = [_build_decoder_layer(config) for _ in range(config.decoder_layers)]
-    cost_volume = (
-        CostVolume(c, config.num_levels, COST_VOLUME_RADIUS) if config.cost_volume else None
-    )
-    return Decoder(
-        layers,
-        c,
-        config.sine_temperature,
-        fuser,
-        cost_volume=cost_volume,
-        update_first_layer=config.version == 1,
-    )
+    if config.version == 1:
+        cost_volume = (
+            CostVolume(c, config.num_levels, COST_VOLUME_RADIUS) if config.cost_volume else None
+        )
+        v1_layers = [layer for layer in layers if isinstance(layer, V1DecoderLayer)]
+        return V1Decoder(v1_layers, c, config.sine_temperature, cost_volume)
+    # without the APU (an ablation) the reported positions follow v1's rule
+    refine = refine_updated if config.position_update else look_forward_twice
+    return Decoder(layers, c, config.sine_temperature, fuser, refine)
 
 
 def _init_transformer(encoder: Encoder, decoder: Decoder) -> None:
@@ -98,9 +96,13 @@ def _init_transformer(encoder: Encoder, decoder: Decoder) -> None:
         decoder.position_heads,
         decoder.visibility_heads,
     ]
-    if decoder.cost_volume is not None:
+    if isinstance(decoder, V1Decoder) and decoder.cost_volume is not None:
         late_modules.append(decoder.cost_volume)
-    late_modules += [layer.corr_fuser for layer in decoder.layers if layer.corr_fuser is not None]
+    late_modules += [
+        layer.corr_fuser
+        for layer in decoder.layers
+        if isinstance(layer, V1DecoderLayer) and layer.corr_fuser is not None
+    ]
     late = {id(p) for module in late_modules for p in module.parameters()}
     params = [*encoder.parameters(), *decoder.parameters()]
     for param in params:
@@ -122,15 +124,22 @@ def _init_transformer(encoder: Encoder, decoder: Decoder) -> None:
             nn.init.zeros_(last.bias)
 
 
-def build_model(config: str | ModelConfig) -> TAPTR:
+def build_model(config: str | ModelConfig, execution: str | Execution = DEFAULT_EXECUTION) -> TAPTR:
     """Builds a freshly initialised model from a preset name or a config.
 
     Args:
         config: a preset name (``"taptrv2"``, ``"tiny"``) or a `ModelConfig`.
+        execution: how the model runs, a name of `taptr.model.execution.EXECUTIONS`
+            (``"fast"``, the default for inference; ``"reference"``; ``"training"``) or an
+            `Execution`; change it later with `TAPTR.set_execution`.
 
     Returns:
-        The model in training mode, with ``model.config`` set.
+        The model in training mode, with ``model.config`` and ``model.execution`` set.
+
+    Raises:
+        ValueError: for an unknown execution name.
     """
+    chosen = get_execution(execution)
     if isinstance(config, str):
         config = get_config(config)
     backbone = _build_backbone(config)
@@ -150,4 +159,5 @@ def build_model(config: str | ModelConfig) -> TAPTR:
         window_dropout=config.window_dropout,
         memory_efficient=config.memory_efficient,
         config=config,
+        execution=chosen,
     )

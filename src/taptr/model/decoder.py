@@ -1,17 +1,18 @@
-"""The point decoder: refines every point query on every frame of one window.
+"""The TAPTRv2 point decoder: refines every point query on every frame of one window.
 
-One TAPTRv2 layer, in the official order: deformable cross-attention to the frame's memory
-with the attention-based position update (APU) → re-embedding of the moved position →
-temporal self-attention across the window's frames of each point → self-attention among
-the points of each frame → FFN, each post-normed. After every layer the decoder fuses the
-APU displacement into the features that the per-layer position and visibility heads read.
+One layer, in the official order: deformable cross-attention to the frame's memory with
+the attention-based position update (APU, `taptr.model.position_update`) → re-embedding
+of the moved position → temporal self-attention across the window's frames of each point
+→ self-attention among the points of each frame → FFN, each post-normed. After every layer
+the decoder fuses the APU displacement into the features that the per-layer position and
+visibility heads read.
 
-TAPTR (v1) layers fuse the cost volume into the content first, then run temporal
-attention, point attention and plain cross-attention, and apply the content updater from
-the first layer on; everything else is shared.
+TAPTR (v1) subclasses these modules in `taptr.model.v1`.
 
 Tracked and untracked entries (a point before its start frame) never attend to each other,
-so untracked entries run through the network without affecting anything that is kept.
+so untracked entries run through the network without affecting anything that is kept. The
+execution (`taptr.model.execution.Execution`) is an argument of every forward; the code
+here is the reference formulation and calls `taptr.model.ops` where the execution says so.
 """
 
 from __future__ import annotations
@@ -21,16 +22,24 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
-from taptr.geometry import clamp_to_unit, inverse_sigmoid
 from taptr.model.attention import (
     DeformableAttention,
+    DeformableOutput,
     KeyAwareDeformableAttention,
     MultiheadAttention,
 )
-from taptr.model.cost_volume import CostVolume
+from taptr.model.execution import Execution
 from taptr.model.layers import MLP
+from taptr.model.masks import AttentionMasks, attention_masks
+from taptr.model.ops import tracked_point_attention
 from taptr.model.position_encoding import point_embedding
-from taptr.model.position_update import PositionUpdate
+from taptr.model.position_update import (
+    PositionUpdate,
+    Refined,
+    RefinementRule,
+    fuse_displacement,
+    move_reference,
+)
 
 
 class LayerOutput(NamedTuple):
@@ -64,42 +73,18 @@ class DecoderOutput(NamedTuple):
     features: Tensor
 
 
-class AttentionMasks(NamedTuple):
-    """Which entries may attend to each other: tracked and untracked ones never do.
+class DecoderLayer(nn.Module):
+    """TAPTRv2's layer: cross-attention (+ APU), temporal attention, point attention, FFN.
 
     Attributes:
-        temporal: (B·N, 1, W_t, W_t) True where frames of one point may attend, or None
-            when every entry is tracked.
-        spatial: (B·W_t, 1, N, N) the same for the points of one frame, built only on the
-            faithful path (it is N² per frame), else None.
-        frame_tracking: (B·W_t, N) which points each frame tracks.
-    """
-
-    temporal: Tensor | None
-    spatial: Tensor | None
-    frame_tracking: Tensor
-
-
-def attention_masks(tracking: Tensor, grouped: bool) -> AttentionMasks:
-    """Masks for a window's tracking pattern, (B, W_t, N) bool.
-
-    Args:
-        tracking: (B, W_t, N) entries at or after each point's start frame.
-        grouped: skip the N × N spatial mask; point attention then runs on the tracked
-            points of each frame only (untracked entries influence nothing and are
-            discarded, so the kept outputs are the same).
-    """
-    batch, frames, points = tracking.shape
-    per_point = tracking.transpose(1, 2).reshape(batch * points, frames)  # (B·N, W_t)
-    per_frame = tracking.reshape(batch * frames, points)  # (B·W_t, N)
-    everything = grouped and bool(tracking.all())
-    temporal = None if everything else (per_point[:, :, None] == per_point[:, None, :]).unsqueeze(1)
-    spatial = None if grouped else (per_frame[:, :, None] == per_frame[:, None, :]).unsqueeze(1)
-    return AttentionMasks(temporal, spatial, per_frame)
-
-
-class DecoderLayer(nn.Module):
-    """Cross-attention (+ position update), temporal attention, point attention, FFN.
+        cross_attention: deformable attention from each point to its frame's memory.
+        position_update: the APU, which moves each point's reference by the displacement
+            its cross-attention implies, or None (ablation, and v1).
+        position_embed: re-embeds the moved reference as the query position for the rest
+            of the layer (present with the APU only).
+        temporal_attention: attention across a point's frames, or None (ablation).
+        point_attention: attention among a frame's points, or None (ablation).
+        ffn: the feed-forward block.
 
     Shape:
         content (B, W_t, N, C), query_pos (B, W_t, N, C), reference (B, W_t, N, 4),
@@ -115,9 +100,6 @@ class DecoderLayer(nn.Module):
         d_model: int,
         ffn_dim: int,
         temperature: float,
-        *,
-        cross_attention_first: bool = True,
-        corr_fuser: MLP | None = None,
     ) -> None:
         """Creates the layer.
 
@@ -129,9 +111,6 @@ class DecoderLayer(nn.Module):
             d_model: channels C.
             ffn_dim: FFN hidden width.
             temperature: sine temperature of the position re-embedding.
-            cross_attention_first: TAPTRv2 order; False gives TAPTR v1's (temporal, points,
-                cross).
-            corr_fuser: v1's MLP that replaces the content by a fusion with the cost volume.
         """
         super().__init__()
         self.cross_attention = cross_attention
@@ -144,9 +123,7 @@ class DecoderLayer(nn.Module):
         self.norm_points = nn.LayerNorm(d_model) if point_attention else None
         self.ffn = MLP(d_model, ffn_dim, d_model, 2)
         self.norm_ffn = nn.LayerNorm(d_model)
-        self.corr_fuser = corr_fuser
         self.temperature = temperature
-        self.cross_attention_first = cross_attention_first
 
     def forward(
         self,
@@ -157,7 +134,7 @@ class DecoderLayer(nn.Module):
         spatial_shapes: list[tuple[int, int]],
         masks: AttentionMasks,
         update: Tensor,
-        correlation: Tensor | None = None,
+        execution: Execution,
     ) -> LayerOutput:
         """Runs one layer.
 
@@ -169,23 +146,22 @@ class DecoderLayer(nn.Module):
             spatial_shapes: (H_l, W_l) per level.
             masks: which entries may attend to each other.
             update: (B, W_t, N) entries whose position may change (tracked, after start).
-            correlation: (B, W_t, N, K) cost-volume samples at ``reference`` (v1 only).
+            execution: how to run.
         """
-        x = content
-        if self.corr_fuser is not None and correlation is not None:
-            x = self.corr_fuser(torch.cat((x, correlation), dim=-1))  # replaces the content
+        x, attended = self._cross(content, query_pos, reference, memory, spatial_shapes, execution)
         displacement = None
-        if self.cross_attention_first:
-            x, reference, displacement, query_pos = self._cross(
-                x, query_pos, reference, memory, spatial_shapes, update
+        if self.position_update is not None and self.position_embed is not None:
+            # the APU's steps 1-3 (taptr.model.position_update), then the re-embedding
+            delta = self.position_update(
+                attended.logits, attended.offsets, spatial_shapes, execution.row_block
             )
+            moved = move_reference(reference, delta.view(*reference.shape[:-1], 2), update)
+            reference, displacement = moved
+            embedded = point_embedding(reference, x.shape[-1] // 2, self.temperature)
+            query_pos = self.position_embed(embedded, execution.row_block)
         x = self._temporal(x, query_pos, masks.temporal)
-        x = self._points(x, query_pos, masks)
-        if not self.cross_attention_first:
-            x, reference, displacement, query_pos = self._cross(
-                x, query_pos, reference, memory, spatial_shapes, update
-            )
-        x = self.norm_ffn(x + self.ffn(x))
+        x = self._points(x, query_pos, masks, execution)
+        x = self.norm_ffn(x + self.ffn(x, execution.row_block))
         return LayerOutput(x, reference, displacement)
 
     def _cross(
@@ -195,9 +171,9 @@ class DecoderLayer(nn.Module):
         reference: Tensor,
         memory: Tensor,
         spatial_shapes: list[tuple[int, int]],
-        update: Tensor,
-    ) -> tuple[Tensor, Tensor, Tensor | None, Tensor]:
-        """Cross-attention, then the position update and re-embedding when present."""
+        execution: Execution,
+    ) -> tuple[Tensor, DeformableOutput]:
+        """Post-normed cross-attention; returns (B, W_t, N, C) and the attention's output."""
         batch, frames, points, channels = x.shape
         flat = x.reshape(batch * frames, points, channels)  # (B·W_t, N, C)
         attended = self.cross_attention(
@@ -205,17 +181,10 @@ class DecoderLayer(nn.Module):
             reference[..., :2].reshape(batch * frames, points, 2),
             memory,
             spatial_shapes,
+            execution,
         )
         x = self.norm_cross(flat + attended.output).view(batch, frames, points, channels)
-        if self.position_update is None or self.position_embed is None:
-            return x, reference, None, query_pos
-        delta = self.position_update(attended.logits, attended.offsets, spatial_shapes)
-        moved = clamp_to_unit(reference[..., :2] + delta.view(batch, frames, points, 2))
-        displacement = update.unsqueeze(-1).to(moved.dtype) * (moved - reference[..., :2])
-        moved = torch.where(update.unsqueeze(-1), moved, reference[..., :2])
-        reference = torch.cat((moved, reference[..., 2:]), dim=-1)
-        query_pos = self.position_embed(point_embedding(reference, channels // 2, self.temperature))
-        return x, reference, displacement, query_pos
+        return x, attended
 
     def _temporal(self, x: Tensor, query_pos: Tensor, allowed: Tensor | None) -> Tensor:
         if self.temporal_attention is None or self.norm_temporal is None:
@@ -226,28 +195,37 @@ class DecoderLayer(nn.Module):
         x = self.norm_temporal(v + self.temporal_attention(q, q, v, allowed))
         return x.view(batch, points, frames, channels).transpose(1, 2)
 
-    def _points(self, x: Tensor, query_pos: Tensor, masks: AttentionMasks) -> Tensor:
+    def _points(
+        self, x: Tensor, query_pos: Tensor, masks: AttentionMasks, execution: Execution
+    ) -> Tensor:
         if self.point_attention is None or self.norm_points is None:
             return x
         batch, frames, points, channels = x.shape
         q = (x + query_pos).reshape(batch * frames, points, channels)
         v = x.reshape(batch * frames, points, channels)  # (B·W_t, N, C)
         tracked = masks.frame_tracking
-        if masks.spatial is not None or bool(tracked.all()):
+        if execution.grouped_point_attention and not bool(tracked.all()):
+            x = tracked_point_attention(self.point_attention, self.norm_points, q, v, tracked)
+        else:
             x = self.norm_points(v + self.point_attention(q, q, v, masks.spatial))
-            return x.view(batch, frames, points, channels)
-        out = v.clone()  # untracked entries are discarded: they keep their input
-        for row in range(batch * frames):
-            keep = tracked[row].nonzero().squeeze(1)  # (n_f,) tracked points of this frame
-            if keep.numel():
-                q_row, v_row = q[row, keep][None], v[row, keep][None]  # (1, n_f, C)
-                attended = self.point_attention(q_row, q_row, v_row, None)
-                out[row, keep] = self.norm_points(v_row + attended)[0]
-        return out.view(batch, frames, points, channels)
+        return x.view(batch, frames, points, channels)
 
 
 class Decoder(nn.Module):
-    """Stack of decoder layers with the shared position embedding and the per-layer heads.
+    """TAPTRv2's stack of layers with the shared query embedding and the per-layer heads.
+
+    Attributes:
+        layers: the decoder layers.
+        position_embed: embeds each layer's input reference as its query position.
+        content_updater: updates each layer's input content from the previous layer's
+            output and the window-entry content, out + U([out, content]) (from the second
+            layer on; v1 from the first).
+        update_fuser: fuses the APU displacement's embedding into the features the heads
+            read (`taptr.model.position_update.fuse_displacement`); it updates nothing.
+            None without the APU.
+        position_heads: per layer, δ in logit space from the head features.
+        visibility_heads: per layer, 3 visibility logits from the head features.
+        refine: the rule that turns δ into reported positions and the next reference.
 
     Shape:
         content (B, W_t, N, C), positions (B, W_t, N, 4) logits, memory (B·W_t, S, C),
@@ -260,9 +238,7 @@ class Decoder(nn.Module):
         d_model: int,
         temperature: float,
         update_fuser: MLP | None,
-        *,
-        cost_volume: CostVolume | None = None,
-        update_first_layer: bool = False,
+        refine: RefinementRule,
     ) -> None:
         """Creates the decoder.
 
@@ -271,32 +247,62 @@ class Decoder(nn.Module):
             d_model: channels C.
             temperature: sine temperature of the query position embedding.
             update_fuser: TAPTRv2's fusion of the APU displacement into the head features.
-            cost_volume: TAPTR v1's correlation module, or None.
-            update_first_layer: apply the content updater before the first layer too (v1).
+            refine: `taptr.model.position_update.refine_updated` with the APU, else
+                `taptr.model.v1.decoder.look_forward_twice`.
         """
         super().__init__()
         self.layers = nn.ModuleList(layers)
         self.position_embed = MLP(2 * d_model, d_model, d_model, 2)
         self.content_updater = MLP(2 * d_model, d_model, d_model, 2)
         self.update_fuser = update_fuser
-        self.cost_volume = cost_volume
         self.position_heads = nn.ModuleList(MLP(d_model, d_model, 4, 3) for _ in layers)
         self.visibility_heads = nn.ModuleList(nn.Linear(d_model, 3) for _ in layers)
+        self.d_model = d_model
         self.temperature = temperature
-        self.update_first_layer = update_first_layer
-        self.grouped_attention = True
+        self.refine = refine
 
     @property
     def has_position_update(self) -> bool:
         """Whether the layers move positions inside cross-attention (APU)."""
         return self.layers[0].position_update is not None
 
-    def fuse(self, content: Tensor, displacement: Tensor | None) -> Tensor:
-        """Features for the heads: the content, fused with the displacement's embedding."""
-        if self.update_fuser is None or displacement is None:
-            return content
-        embedded = point_embedding(displacement, content.shape[-1] // 2, self.temperature)
-        return self.update_fuser(torch.cat((content, embedded), dim=-1))
+    def query_position(self, reference: Tensor, execution: Execution) -> Tensor:
+        """Query position embedding of a reference (B, W_t, N, 4) in [0, 1]; (B, W_t, N, C)."""
+        embedded = point_embedding(reference, self.d_model // 2, self.temperature)
+        return self.position_embed(embedded, execution.row_block)
+
+    def update_layer_content(self, out: Tensor, content: Tensor, execution: Execution) -> Tensor:
+        """A layer's input: the previous output plus ``content_updater``'s update."""
+        return out + self.content_updater(torch.cat((out, content), -1), execution.row_block)
+
+    def read_heads(
+        self,
+        index: int,
+        result: LayerOutput,
+        previous: Tensor,
+        step: Tensor,
+        execution: Execution,
+    ) -> tuple[Refined, Tensor, Tensor]:
+        """Layer ``index``'s heads on its output.
+
+        Args:
+            index: the layer.
+            result: its output.
+            previous: (B, W_t, N, 4) the previous layer's undetached positions in [0, 1].
+            step: (B, W_t, N, 1) 1 where positions may change, else 0.
+            execution: how to run.
+
+        Returns:
+            The refined positions, (B, W_t, N, 3) visibility logits and the (B, W_t, N, C)
+            features the heads read.
+        """
+        row_block = execution.row_block
+        features = fuse_displacement(
+            self.update_fuser, result.content, result.displacement, self.temperature, row_block
+        )
+        delta = self.position_heads[index](features, row_block) * step
+        refined = self.refine(delta, result.reference, previous)
+        return refined, self.visibility_heads[index](features), features
 
     def forward(
         self,
@@ -306,6 +312,7 @@ class Decoder(nn.Module):
         spatial_shapes: list[tuple[int, int]],
         tracking: Tensor,
         update: Tensor,
+        execution: Execution,
     ) -> DecoderOutput:
         """Decodes one window.
 
@@ -316,51 +323,49 @@ class Decoder(nn.Module):
             spatial_shapes: (H_l, W_l) per level.
             tracking: (B, W_t, N) entries at or after each point's start frame.
             update: (B, W_t, N) tracking entries after the start frame.
+            execution: how to run.
         """
-        batch, frames, points, channels = content.shape
-        masks = attention_masks(tracking, self.grouped_attention)
+        masks = attention_masks(tracking, execution.grouped_point_attention)
         step = update.unsqueeze(-1).to(content.dtype)
-        maps = None
-        if self.cost_volume is not None:
-            maps = self.cost_volume.prepare(
-                memory, spatial_shapes, content.reshape(batch * frames, points, channels)
-            )
         reference = positions.sigmoid()
-        reference_out = reference  # v1 outputs build on the undetached input reference
-        out = content
-        all_positions, all_visibility, all_updated = [], [], []
+        previous = reference
+        out, features = content, content
+        outputs = LayerOutputs()
         for index, layer in enumerate(self.layers):
-            embedded = point_embedding(reference, channels // 2, self.temperature)
-            query_pos = self.position_embed(embedded)
-            x = out
-            if index > 0 or self.update_first_layer:
-                x = out + self.content_updater(torch.cat((out, content), -1))
-            correlation = None
-            if self.cost_volume is not None and maps is not None:
-                flat = reference[..., :2].reshape(batch * frames, points, 2)
-                correlation = self.cost_volume.sample(maps, flat).view(batch, frames, points, -1)
+            query_pos = self.query_position(reference, execution)
+            x = out if index == 0 else self.update_layer_content(out, content, execution)
             result = layer(
-                x, query_pos, reference, memory, spatial_shapes, masks, update, correlation
+                x, query_pos, reference, memory, spatial_shapes, masks, update, execution
             )
             out = result.content
-            features = self.fuse(out, result.displacement)
-            delta = self.position_heads[index](features) * step
-            if result.displacement is not None:
-                updated_logit = inverse_sigmoid(result.reference)
-                # the official outputs re-read the updated position through one more sigmoid
-                # round trip than the reference handed to the next layer (≈1e-7 apart)
-                updated_output = inverse_sigmoid(updated_logit.sigmoid())
-                all_positions.append(delta + updated_output)
-                all_updated.append(updated_output)
-                reference = (delta + updated_logit).sigmoid().detach()
-            else:
-                all_positions.append(delta + inverse_sigmoid(reference_out))
-                reference_out = (delta + inverse_sigmoid(reference)).sigmoid()
-                reference = reference_out.detach()
-            all_visibility.append(self.visibility_heads[index](features))
+            refined, visibility, features = self.read_heads(
+                index, result, previous, step, execution
+            )
+            outputs.add(refined, visibility)
+            reference, previous = refined.reference, refined.previous
+        return outputs.stacked(features)
+
+
+class LayerOutputs:
+    """Collects the per-layer outputs of one window."""
+
+    def __init__(self) -> None:
+        self.positions: list[Tensor] = []
+        self.visibility: list[Tensor] = []
+        self.updated: list[Tensor] = []
+
+    def add(self, refined: Refined, visibility: Tensor) -> None:
+        """Appends one layer's refined positions and (B, W_t, N, 3) visibility logits."""
+        self.positions.append(refined.positions)
+        self.visibility.append(visibility)
+        if refined.updated is not None:
+            self.updated.append(refined.updated)
+
+    def stacked(self, features: Tensor) -> DecoderOutput:
+        """The window's `DecoderOutput`, with the last layer's head ``features``."""
         return DecoderOutput(
-            torch.stack(all_positions),
-            torch.stack(all_visibility),
-            torch.stack(all_updated) if all_updated else None,
+            torch.stack(self.positions),
+            torch.stack(self.visibility),
+            torch.stack(self.updated) if self.updated else None,
             features,
         )

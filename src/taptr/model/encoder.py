@@ -11,6 +11,7 @@ import torch
 from torch import Tensor, nn
 
 from taptr.model.attention import DeformableAttention
+from taptr.model.execution import Execution
 from taptr.model.layers import MLP
 from taptr.model.position_encoding import feature_map_encoding
 
@@ -52,11 +53,14 @@ class EncoderLayer(nn.Module):
         position: Tensor,
         reference: Tensor,
         spatial_shapes: list[tuple[int, int]],
+        execution: Execution,
     ) -> Tensor:
-        """Runs one post-norm layer."""
-        attended = self.attention(tokens + position, reference, tokens, spatial_shapes).output
+        """Runs one post-norm layer the way ``execution`` says."""
+        attended = self.attention(
+            tokens + position, reference, tokens, spatial_shapes, execution
+        ).output
         tokens = self.norm_attention(tokens + attended)
-        return self.norm_ffn(tokens + self.ffn(tokens))
+        return self.norm_ffn(tokens + self.ffn(tokens, execution.row_block))
 
 
 class Encoder(nn.Module):
@@ -88,8 +92,8 @@ class Encoder(nn.Module):
         ]
         return torch.cat(encodings)
 
-    def forward(self, maps: list[Tensor]) -> Tensor:
-        """Encodes the flattened multi-scale tokens of each image."""
+    def forward(self, maps: list[Tensor], execution: Execution) -> Tensor:
+        """Encodes the flattened multi-scale tokens of each image the way ``execution`` says."""
         spatial_shapes = [(m.shape[-2], m.shape[-1]) for m in maps]
         tokens = torch.cat([m.flatten(2).transpose(1, 2) for m in maps], dim=1)  # (B, S, C)
         if not self.layers:
@@ -100,5 +104,5 @@ class Encoder(nn.Module):
         position = position.unsqueeze(0).expand(batch, -1, -1)
         reference = reference.unsqueeze(0).expand(batch, -1, -1)
         for layer in self.layers:
-            tokens = layer(tokens, position, reference, spatial_shapes)
+            tokens = layer(tokens, position, reference, spatial_shapes, execution)
         return tokens

@@ -3,6 +3,9 @@
 `encode` turns frames into multi-scale memory; `initial_content` builds point queries;
 `decode_window` runs the decoder over one window; `update_content` computes the content
 handed to the next window. The sliding-window loop lives in `taptr.model.tracker`.
+
+How the model runs (`taptr.model.execution`) is this module's ``execution``, the only
+mode anywhere in the model: every method here hands it down as an argument.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ from taptr.config import ModelConfig
 from taptr.model.backbone import Backbone, InputProjections
 from taptr.model.decoder import Decoder, DecoderOutput
 from taptr.model.encoder import Encoder
+from taptr.model.execution import DEFAULT_EXECUTION, Execution, get_execution
 from taptr.model.layers import MLP
 from taptr.model.query_init import QueryInitializer
 
@@ -47,6 +51,13 @@ class TAPTR(nn.Module):
     """TAPTRv2: backbone, deformable encoder, point-query initialiser, windowed decoder.
 
     Inputs are ImageNet-normalised frames; positions are normalised by (W − 1, H − 1).
+
+    Attributes:
+        execution: how the model runs (`taptr.model.execution.Execution`); set by
+            `taptr.model.build.build_model` and changed only by `set_execution`.
+        window_updater: updates the content handed from one window to the next from the
+            point's initial content, its window-entry content and the last layer's head
+            features (`update_content`).
     """
 
     def __init__(
@@ -64,6 +75,7 @@ class TAPTR(nn.Module):
         window_dropout: float,
         memory_efficient: bool = False,
         config: ModelConfig | None = None,
+        execution: Execution | str = DEFAULT_EXECUTION,
     ) -> None:
         super().__init__()
         self.backbone = backbone
@@ -78,6 +90,19 @@ class TAPTR(nn.Module):
         self.window_dropout = window_dropout
         self.memory_efficient = memory_efficient
         self.config = config
+        self.execution = get_execution(execution)
+
+    def set_execution(self, execution: Execution | str) -> TAPTR:
+        """Switches how the model runs; returns the model (``model.set_execution("reference")``).
+
+        Args:
+            execution: a name of `taptr.model.execution.EXECUTIONS` or an `Execution`.
+
+        Raises:
+            ValueError: for an unknown name.
+        """
+        self.execution = get_execution(execution)
+        return self
 
     @property
     def num_layers(self) -> int:
@@ -95,7 +120,7 @@ class TAPTR(nn.Module):
         """
         maps = self.input_projections(self.backbone(images))
         spatial_shapes = [(m.shape[-2], m.shape[-1]) for m in maps]
-        return FrameFeatures(self.encoder(maps), spatial_shapes)
+        return FrameFeatures(self.encoder(maps, self.execution), spatial_shapes)
 
     def encode(self, frames: Tensor, chunk_size: int | None = None) -> FrameFeatures:
         """Encodes every frame of a batch of videos independently.
@@ -145,7 +170,13 @@ class TAPTR(nn.Module):
             update: (B, W_t, N) bool, tracking entries after the start frame.
         """
         return self.decoder(
-            content, positions, memory.flatten(0, 1), spatial_shapes, tracking, update
+            content,
+            positions,
+            memory.flatten(0, 1),
+            spatial_shapes,
+            tracking,
+            update,
+            self.execution,
         )
 
     def update_content(
@@ -162,6 +193,7 @@ class TAPTR(nn.Module):
         Returns:
             (B, W_t, N, C).
         """
-        delta = self.window_updater(torch.cat((initial, content, features), dim=-1))
+        joined = torch.cat((initial, content, features), dim=-1)
+        delta = self.window_updater(joined, self.execution.row_block)
         delta = delta * update.unsqueeze(-1).to(delta.dtype)
         return content + F.dropout(delta, self.window_dropout, self.training)

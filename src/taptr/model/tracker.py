@@ -10,13 +10,16 @@ All of it goes through an explicit `TrackerState`, which only holds what later w
 still read: the trajectory of every frame from the current window on, plus one shared
 value for all frames not yet reached. Encoded frames are requested from a `FrameSource`
 window by window, so memory is bounded by the window, not the video.
+
+The network itself is reached through a `WindowBackend`: the PyTorch `TAPTR` module (as
+`ModelBackend`, which every function here applies to a `TAPTR` it is given) or the exported
+graphs (`taptr.export.runner.GraphBackend`), so both run exactly these rules.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from typing import NamedTuple
+from typing import NamedTuple, Protocol
 
 import torch
 import torch.nn.functional as F
@@ -24,88 +27,164 @@ from torch import Tensor
 
 from taptr.geometry import inverse_sigmoid
 from taptr.model.taptr import TAPTR, FrameFeatures
-from taptr.model.trajectory import Trajectory
+from taptr.model.trajectory import QuerySet, TrackerState, TrackOutput, Trajectory, finish
+from taptr.model.trajectory import keep_points as keep_points  # part of the driver's API
+from taptr.model.v1.memory_efficient import initialise_in_first_window
 from taptr.windows import content_padding_gap, window_ranges
 
+FrameSource = Callable[[int, int], FrameFeatures]
+"""Returns the features of frames first..last (inclusive), memory (B, W_t, S, C).
 
-class QuerySet(NamedTuple):
-    """The points to track, in model units.
-
-    Attributes:
-        start_frames: (B, N) int64 frame where each point is given.
-        positions: (B, N, 2) its (x, y) there, normalised by (W − 1, H − 1).
-        start_visible: (B, N) bool visibility label at the start frame (only sets the
-            visibility logits of frames the model never writes).
-    """
-
-    start_frames: Tensor
-    positions: Tensor
-    start_visible: Tensor
+This is how frames reach the driver: the source encodes them with the backend's encoder
+(`taptr.model.frames.EncodedFrames`, `taptr.export.runner.GraphFrames`) or slices features
+encoded beforehand."""
 
 
-@dataclass
-class TrackerState:
-    """Everything the next window needs; no other state exists anywhere.
+class WindowDecoding(NamedTuple):
+    """One decoded window, before the write-back masks.
 
     Attributes:
-        queries: the points, in model units.
-        num_frames: total video length when known (decides the long-video content rule).
-        initial_content: (B, N, C) each point's initial content (zeros until its start
-            frame is reached).
-        initialised: (B, N) bool, whether ``initial_content`` is set.
-        content: the content trajectory.
-        positions: per decoder layer, the position-logit trajectory (B, N, 4).
-        visibility: per decoder layer, the visibility-logit trajectory (B, N, 3), float32.
-        updated_positions: per decoder layer, the APU-updated position logits (B, N, 4);
-            empty without the position update.
-        next_window: index of the next window to decode.
-    """
-
-    queries: QuerySet
-    num_frames: int | None
-    initial_content: Tensor
-    initialised: Tensor
-    content: Trajectory
-    positions: list[Trajectory]
-    visibility: list[Trajectory]
-    updated_positions: list[Trajectory] = field(default_factory=list)
-    next_window: int = 0
-
-
-class TrackOutput(NamedTuple):
-    """Full-video trajectories after all windows.
-
-    Attributes:
-        positions: (B, T, N, 2) last layer's positions, normalised (x, y).
-        visibility_logits: (B, T, N, 3) last layer's logits (channel 1 = visible).
-        layer_positions: (D_l, B, T, N, 4) position logits of every layer.
-        layer_visibility_logits: (D_l, B, T, N, 3).
-        layer_updated_positions: (D_l, B, T, N, 4) APU-updated logits, or None.
+        positions: (D_l, B, W_t, N, 4) position logits after each layer the backend reports.
+        visibility_logits: (D_l, B, W_t, N, 3) (channel 1 = visible).
+        updated_positions: (D_l, B, W_t, N, 4) APU-updated logits, or None.
+        next_content: (B, W_t, N, C) content handed to the next window.
     """
 
     positions: Tensor
     visibility_logits: Tensor
-    layer_positions: Tensor
-    layer_visibility_logits: Tensor
-    layer_updated_positions: Tensor | None
+    updated_positions: Tensor | None
+    next_content: Tensor
 
 
-FrameSource = Callable[[int, int], FrameFeatures]
-"""Returns the features of frames first..last (inclusive), memory (B, W_t, S, C)."""
+class WindowBackend(Protocol):
+    """What the driver asks of whatever runs the network.
+
+    Point content is built in two steps so that samples from several start frames can be
+    merged before one projection (``project_samples`` acts row by row); a backend that
+    cannot split them returns the content from ``sample_points`` and projects with the
+    identity. Decoding and the content hand-over are one step, given the initial content,
+    because the exported decoder graph computes both in one call.
+
+    Attributes:
+        window_size: frames per window.
+        window_stride: frames between window starts.
+        long_video_frames: above this length the content is handed over less often.
+        memory_efficient: TAPTR v1's memory-efficient initialisation
+            (`taptr.model.v1.memory_efficient`).
+        training: training mode (content handed over after every window).
+        num_layers: D_l, the decoder layers whose results ``decode_window`` returns.
+        has_position_update: whether ``decode_window`` returns APU-updated positions.
+        content_channels: C, channels of the point content.
+    """
+
+    window_size: int
+    window_stride: int
+    long_video_frames: int
+    memory_efficient: bool
+    training: bool
+    num_layers: int
+    has_position_update: bool
+    content_channels: int
+
+    def sample_points(
+        self, memory: Tensor, spatial_shapes: list[tuple[int, int]], positions: Tensor
+    ) -> Tensor:
+        """One frame's memory (B, S, C) at normalised (x, y) positions (B, N, 2) → (B, N, K)."""
+        ...
+
+    def project_samples(self, samples: Tensor) -> Tensor:
+        """Samples (B, N, K) → initial content (B, N, C)."""
+        ...
+
+    def decode_window(
+        self,
+        memory: Tensor,
+        spatial_shapes: list[tuple[int, int]],
+        content: Tensor,
+        positions: Tensor,
+        initial: Tensor,
+        tracking: Tensor,
+        update: Tensor,
+    ) -> WindowDecoding:
+        """Decodes one window and computes the content handed to the next one.
+
+        Args:
+            memory: (B, W_t, S, C) encoder memory of the window's frames.
+            spatial_shapes: (H_l, W_l) per level.
+            content: (B, W_t, N, C) content at window entry.
+            positions: (B, W_t, N, 4) last layer's position logits at window entry.
+            initial: (B, N, C) each point's initial content (zeros before it starts).
+            tracking: (B, W_t, N) bool, entries at or after each point's start frame.
+            update: (B, W_t, N) bool, tracking entries after the start frame.
+        """
+        ...
+
+
+class ModelBackend:
+    """`WindowBackend` over the PyTorch `TAPTR` module, through its public methods.
+
+    Its facts are read when it is made; the driver makes one per call.
+    """
+
+    def __init__(self, model: TAPTR) -> None:
+        self.model = model
+        self.window_size = model.window_size
+        self.window_stride = model.window_stride
+        self.long_video_frames = model.long_video_frames
+        self.memory_efficient = model.memory_efficient
+        self.training = model.training
+        self.num_layers = model.num_layers
+        self.has_position_update = model.decoder.has_position_update
+        self.content_channels = model.query_init.project.out_features
+
+    def sample_points(
+        self, memory: Tensor, spatial_shapes: list[tuple[int, int]], positions: Tensor
+    ) -> Tensor:
+        """Per-level bilinear samples, (B, S, C) and (B, N, 2) → (B, N, L·C)."""
+        return self.model.query_init.sample(memory, spatial_shapes, positions)
+
+    def project_samples(self, samples: Tensor) -> Tensor:
+        """The query initialiser's projection, (B, N, L·C) → (B, N, C)."""
+        return self.model.query_init.project(samples)
+
+    def decode_window(
+        self,
+        memory: Tensor,
+        spatial_shapes: list[tuple[int, int]],
+        content: Tensor,
+        positions: Tensor,
+        initial: Tensor,
+        tracking: Tensor,
+        update: Tensor,
+    ) -> WindowDecoding:
+        """`TAPTR.decode_window` then `TAPTR.update_content` (as `WindowBackend`)."""
+        decoded = self.model.decode_window(
+            memory, spatial_shapes, content, positions, tracking, update
+        )
+        initial = initial[:, None].expand_as(content)  # (B, W_t, N, C)
+        next_content = self.model.update_content(initial, content, decoded.features, update)
+        return WindowDecoding(
+            decoded.positions, decoded.visibility_logits, decoded.updated_positions, next_content
+        )
+
+
+def as_backend(model: TAPTR | WindowBackend) -> WindowBackend:
+    """The backend of ``model``: a `ModelBackend` around a `TAPTR`, any other as it is."""
+    return ModelBackend(model) if isinstance(model, TAPTR) else model
 
 
 def start_state(
-    model: TAPTR, queries: QuerySet, num_frames: int | None, dtype: torch.dtype
+    model: TAPTR | WindowBackend, queries: QuerySet, num_frames: int | None, dtype: torch.dtype
 ) -> TrackerState:
     """The state before the first window: every point at its query, visibility one-hot."""
+    backend = as_backend(model)
     batch, points = queries.start_frames.shape
-    channels = model.query_init.project.out_features
+    channels = backend.content_channels
     device = queries.positions.device
     xy_logit = inverse_sigmoid(queries.positions.to(dtype))
     position = torch.cat((xy_logit, xy_logit.new_zeros(batch, points, 2)), dim=-1)  # (B, N, 4)
     one_hot = F.one_hot(torch.where(queries.start_visible, 1, 2), 3).to(torch.float32)
-    layers = model.num_layers
-    has_update = model.decoder.has_position_update
+    layers = backend.num_layers
     return TrackerState(
         queries=queries,
         num_frames=num_frames,
@@ -114,11 +193,13 @@ def start_state(
         content=Trajectory(torch.zeros(batch, points, channels, dtype=dtype, device=device)),
         positions=[Trajectory(position) for _ in range(layers)],
         visibility=[Trajectory(one_hot) for _ in range(layers)],
-        updated_positions=[Trajectory(position) for _ in range(layers)] if has_update else [],
+        updated_positions=(
+            [Trajectory(position) for _ in range(layers)] if backend.has_position_update else []
+        ),
     )
 
 
-def add_points(model: TAPTR, state: TrackerState, queries: QuerySet) -> None:
+def add_points(model: TAPTR | WindowBackend, state: TrackerState, queries: QuerySet) -> None:
     """Appends points to a running state; they start untracked and join at their start frame.
 
     Exact with respect to tracking them from the beginning as long as no window containing
@@ -139,36 +220,25 @@ def add_points(model: TAPTR, state: TrackerState, queries: QuerySet) -> None:
         mine.add_points(new.future)
 
 
-def keep_points(state: TrackerState, keep: Tensor) -> None:
-    """Drops the points not selected by the (N,) bool mask from a running state."""
-    state.queries = QuerySet(*(q[:, keep] for q in state.queries))
-    state.initial_content = state.initial_content[:, keep]
-    state.initialised = state.initialised[:, keep]
-    for trajectory in [
-        state.content,
-        *state.positions,
-        *state.visibility,
-        *state.updated_positions,
-    ]:
-        trajectory.keep_points(keep)
-
-
-def _initialise_points(
-    model: TAPTR,
+def initialise_points(
+    backend: WindowBackend,
     state: TrackerState,
-    memory: Tensor,
-    spatial_shapes: list[tuple[int, int]],
+    features: FrameFeatures,
     first: int,
-    clamp_starts: bool = False,
+    content_frames: Tensor | None = None,
 ) -> None:
-    """Builds the content of points whose start frame lies in the window.
+    """Builds the content of points not yet initialised whose content frame is in the window.
 
-    With ``clamp_starts`` (TAPTR v1's memory-efficient mode, on the first window), every
-    point is initialised from frame min(start, last frame of the window) instead.
+    Args:
+        backend: runs the query initialiser.
+        state: the driver state (updated in place).
+        features: memory (B, W_t, S, C) of the window's frames.
+        first: first frame of the window.
+        content_frames: (B, N) frame each point takes its content from; default its start
+            frame (TAPTR v1's memory-efficient mode passes others).
     """
-    starts = state.queries.start_frames
-    if clamp_starts:
-        starts = starts.clamp(max=first + memory.shape[1] - 1)
+    memory, spatial_shapes = features
+    starts = state.queries.start_frames if content_frames is None else content_frames
     new = (~state.initialised) & (starts >= first) & (starts < first + memory.shape[1])
     if not bool(new.any()):
         return
@@ -176,7 +246,7 @@ def _initialise_points(
     for offset in range(memory.shape[1]):
         here = new & (starts == first + offset)
         if bool(here.any()):
-            frame_samples = model.query_init.sample(
+            frame_samples = backend.sample_points(
                 memory[:, offset], spatial_shapes, state.queries.positions
             )
             samples = (
@@ -185,14 +255,14 @@ def _initialise_points(
                 else torch.where(here[..., None], frame_samples, samples)
             )
     assert samples is not None
-    content = model.query_init.project(samples)  # (B, N, C)
+    content = backend.project_samples(samples)  # (B, N, C)
     state.initial_content = torch.where(new[..., None], content, state.initial_content)
     state.initialised = state.initialised | new
     state.content.fill(new, content)
 
 
 def decode_window(
-    model: TAPTR,
+    model: TAPTR | WindowBackend,
     state: TrackerState,
     first: int,
     last: int,
@@ -201,18 +271,17 @@ def decode_window(
     """Decodes frames first..last and updates ``state`` in place.
 
     Args:
-        model: the network.
+        model: the network, or another backend.
         state: the driver state; ``state.next_window`` is the index of this window.
         first: first frame of the window.
         last: last frame of the window (inclusive).
         frames_source: gives the memory (B, W_t, S, C) of frames first..last; not called
             when the window is skipped.
     """
+    backend = as_backend(model)
     index = state.next_window
     state.next_window += 1
-    if model.memory_efficient and not model.training and index == 0:
-        # v1's memory-efficient mode initialises every query from the first 8 frames only
-        _initialise_points(model, state, *frames_source(first, last), first, clamp_starts=True)
+    initialise_in_first_window(backend, state, index, first, last, frames_source)
     frames = torch.arange(first, last + 1, device=state.queries.start_frames.device)
     starts = state.queries.start_frames[:, None, :]  # (B, 1, N)
     tracking = frames[None, :, None] >= starts  # (B, W_t, N)
@@ -221,12 +290,18 @@ def decode_window(
         return  # the official code skips such windows entirely, padding included
 
     memory, spatial_shapes = frames_source(first, last)
-    _initialise_points(model, state, memory, spatial_shapes, first)
+    initialise_points(backend, state, FrameFeatures(memory, spatial_shapes), first)
     content = state.content.read(first, last)
-    decoded = model.decode_window(
-        memory, spatial_shapes, content, state.positions[-1].read(first, last), tracking, update
+    decoded = backend.decode_window(
+        memory,
+        spatial_shapes,
+        content,
+        state.positions[-1].read(first, last),
+        state.initial_content,
+        tracking,
+        update,
     )
-    for layer in range(model.num_layers):
+    for layer in range(backend.num_layers):
         state.positions[layer].write(first, decoded.positions[layer], update)
         state.visibility[layer].write(first, decoded.visibility_logits[layer].float(), update)
         state.positions[layer].pad_from(last)
@@ -235,30 +310,14 @@ def decode_window(
             state.updated_positions[layer].write(first, decoded.updated_positions[layer], update)
             state.updated_positions[layer].pad_from(last)
 
-    initial = state.initial_content[:, None].expand_as(content)
-    new_content = model.update_content(initial, content, decoded.features, update)
-    state.content.write(first, new_content, torch.ones_like(update))
-    gap = content_padding_gap(state.num_frames, model.long_video_frames, model.training)
+    state.content.write(first, decoded.next_content, torch.ones_like(update))
+    gap = content_padding_gap(state.num_frames, backend.long_video_frames, backend.training)
     if index % gap == 0:
         state.content.pad_from(last)
 
 
-def finish(state: TrackerState, num_frames: int) -> TrackOutput:
-    """Stacks the trajectories of frames 0..T−1 (requires that none was released)."""
-
-    def stack(trajectories: list[Trajectory]) -> Tensor:
-        return torch.stack([t.read(0, num_frames - 1) for t in trajectories])  # (D_l, B, T, N, D)
-
-    positions = stack(state.positions)
-    visibility = stack(state.visibility)
-    updated = stack(state.updated_positions) if state.updated_positions else None
-    return TrackOutput(
-        positions[-1, ..., :2].sigmoid(), visibility[-1], positions, visibility, updated
-    )
-
-
 def run_windows(
-    model: TAPTR,
+    model: TAPTR | WindowBackend,
     queries: QuerySet,
     num_frames: int,
     frames: FrameSource,
@@ -268,19 +327,20 @@ def run_windows(
     """Tracks the queries through a whole video, window by window.
 
     Args:
-        model: the network.
+        model: the network, or another backend (`WindowBackend`).
         queries: points in model units.
         num_frames: video length T.
         frames: source of encoded frames for each window.
         dtype: floating dtype of the positions and content.
         on_window: called after each window (progress reporting).
     """
-    state = start_state(model, queries, num_frames, dtype)
-    ranges = window_ranges(num_frames, model.window_size, model.window_stride)
+    backend = as_backend(model)
+    state = start_state(backend, queries, num_frames, dtype)
+    ranges = window_ranges(num_frames, backend.window_size, backend.window_stride)
     for (first, last), following in zip(
         ranges, ranges[1:] + [(num_frames, num_frames)], strict=True
     ):
-        decode_window(model, state, first, last, frames)
+        decode_window(backend, state, first, last, frames)
         state.content.release(before=following[0])  # content of earlier frames is never read again
         if on_window is not None:
             on_window()

@@ -1,11 +1,16 @@
-"""Per-frame trajectories with a shared value for every frame not yet reached.
+"""The driver's state: per-frame trajectories, the points, and the final output.
 
-The window driver writes results window by window and copies a window's last frame to all
-later frames. Keeping those later frames as one shared tensor makes the copy free, keeps
-memory bounded by the frames still in use, and lets finished frames be released.
+The window driver (`taptr.model.tracker`) writes results window by window and copies a
+window's last frame to all later frames. Keeping those later frames as one shared tensor
+makes the copy free, keeps memory bounded by the frames still in use, and lets finished
+frames be released. `TrackerState` bundles the trajectories of every point with what the
+next window needs; nothing here depends on the network that fills them.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -80,3 +85,93 @@ class Trajectory:
         released, self.frames = self.frames[:count], self.frames[count:]
         self.first += count
         return released
+
+
+class QuerySet(NamedTuple):
+    """The points to track, in model units.
+
+    Attributes:
+        start_frames: (B, N) int64 frame where each point is given.
+        positions: (B, N, 2) its (x, y) there, normalised by (W − 1, H − 1).
+        start_visible: (B, N) bool visibility label at the start frame (only sets the
+            visibility logits of frames the model never writes).
+    """
+
+    start_frames: Tensor
+    positions: Tensor
+    start_visible: Tensor
+
+
+@dataclass
+class TrackerState:
+    """Everything the next window needs; no other state exists anywhere.
+
+    Attributes:
+        queries: the points, in model units.
+        num_frames: total video length when known (decides the long-video content rule).
+        initial_content: (B, N, C) each point's initial content (zeros until its start
+            frame is reached).
+        initialised: (B, N) bool, whether ``initial_content`` is set.
+        content: the content trajectory.
+        positions: per decoder layer, the position-logit trajectory (B, N, 4).
+        visibility: per decoder layer, the visibility-logit trajectory (B, N, 3), float32.
+        updated_positions: per decoder layer, the APU-updated position logits (B, N, 4);
+            empty without the position update.
+        next_window: index of the next window to decode.
+    """
+
+    queries: QuerySet
+    num_frames: int | None
+    initial_content: Tensor
+    initialised: Tensor
+    content: Trajectory
+    positions: list[Trajectory]
+    visibility: list[Trajectory]
+    updated_positions: list[Trajectory] = field(default_factory=list)
+    next_window: int = 0
+
+
+class TrackOutput(NamedTuple):
+    """Full-video trajectories after all windows.
+
+    Attributes:
+        positions: (B, T, N, 2) last layer's positions, normalised (x, y).
+        visibility_logits: (B, T, N, 3) last layer's logits (channel 1 = visible).
+        layer_positions: (D_l, B, T, N, 4) position logits of every layer.
+        layer_visibility_logits: (D_l, B, T, N, 3).
+        layer_updated_positions: (D_l, B, T, N, 4) APU-updated logits, or None.
+    """
+
+    positions: Tensor
+    visibility_logits: Tensor
+    layer_positions: Tensor
+    layer_visibility_logits: Tensor
+    layer_updated_positions: Tensor | None
+
+
+def keep_points(state: TrackerState, keep: Tensor) -> None:
+    """Drops the points not selected by the (N,) bool mask from a running state."""
+    state.queries = QuerySet(*(q[:, keep] for q in state.queries))
+    state.initial_content = state.initial_content[:, keep]
+    state.initialised = state.initialised[:, keep]
+    for trajectory in [
+        state.content,
+        *state.positions,
+        *state.visibility,
+        *state.updated_positions,
+    ]:
+        trajectory.keep_points(keep)
+
+
+def finish(state: TrackerState, num_frames: int) -> TrackOutput:
+    """Stacks the trajectories of frames 0..T−1 (requires that none was released)."""
+
+    def stack(trajectories: list[Trajectory]) -> Tensor:
+        return torch.stack([t.read(0, num_frames - 1) for t in trajectories])  # (D_l, B, T, N, D)
+
+    positions = stack(state.positions)
+    visibility = stack(state.visibility)
+    updated = stack(state.updated_positions) if state.updated_positions else None
+    return TrackOutput(
+        positions[-1, ..., :2].sigmoid(), visibility[-1], positions, visibility, updated
+    )

@@ -29,7 +29,6 @@ from taptr.data.sampling import ClipBatch
 from taptr.distributed import gather_objects
 from taptr.files import atomic_path
 from taptr.model.build import build_model
-from taptr.model.ops import set_kernel
 from taptr.model.taptr import TAPTR
 from taptr.train import distributed
 from taptr.train.checkpoint import (
@@ -47,7 +46,7 @@ from taptr.train.forward import TrainingForward, batch_targets
 from taptr.train.initialise import init_backbone, init_from_checkpoint
 from taptr.train.losses import LossWeights, tracking_loss
 from taptr.train.monitor import Monitor
-from taptr.train.optim import build_optimizer
+from taptr.train.optim import apply_milestones, build_optimizer
 from taptr.train.precision import autocast, grad_scaler
 from taptr.train.validate import evaluate
 
@@ -81,10 +80,9 @@ def _build(
         state = load_training_checkpoint(resume)
         check_resumable(config, state["train_config"], str(resume))
     distributed.seed_process(config.seed, 0)  # the same fresh weights on every process
-    model = build_model(config.model)
-    # Same sums as the default gather kernel, but its backward is about half the cost on
-    # CPU (embedding_bag's backward sorts every index): 2.4 vs 4.0 s per small-preset step.
-    set_kernel(model, "grid_sample")
+    # the grid_sample kernel: its backward is about half the gather kernel's cost on CPU
+    # (see taptr.model.execution)
+    model = build_model(config.model, execution="training")
     if state is None:
         init_backbone(model, config.backbone_weights)
         if config.init_from:
@@ -118,6 +116,7 @@ def _build(
             rank=info.rank,
             world_size=info.world_size,
         )
+        apply_milestones(scheduler, config.lr_milestones)
         logger.info("resumed from %s after step %d", resume, run.step)
     return run
 

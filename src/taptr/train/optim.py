@@ -8,6 +8,8 @@ each milestone, counted in optimizer steps (the official code counts epochs).
 
 from __future__ import annotations
 
+from collections import Counter
+
 from torch import nn, optim
 
 
@@ -37,3 +39,19 @@ def build_optimizer(
     )
     scheduler = optim.lr_scheduler.MultiStepLR(optimizer, list(milestones), gamma=gamma)
     return optimizer, scheduler
+
+
+def apply_milestones(
+    scheduler: optim.lr_scheduler.MultiStepLR, milestones: tuple[int, ...]
+) -> None:
+    """Makes a restored schedule follow ``milestones`` from its current step on.
+
+    A resumed run may change its milestones, but the scheduler's saved state carries the old
+    ones, so the configured milestones are set again and the learning rates recomputed for
+    the step reached (one drop by ``gamma`` per milestone at or before it).
+    """
+    scheduler.milestones = Counter(milestones)
+    drops = sum(1 for m in milestones if m <= scheduler.last_epoch)
+    for group, base in zip(scheduler.optimizer.param_groups, scheduler.base_lrs, strict=True):
+        group["lr"] = base * scheduler.gamma**drops
+    scheduler._last_lr = [group["lr"] for group in scheduler.optimizer.param_groups]

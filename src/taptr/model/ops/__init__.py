@@ -1,9 +1,15 @@
-"""Deformable-attention kernels, all pure PyTorch, selectable per model.
+"""The model's computations in more than one formulation, all pure PyTorch.
 
-``grid_sample`` is the reference formulation (Deformable DETR's, what the official code
-computes); ``gather`` computes the same sums as weighted row gathers and is the default
-(several times faster on CPU, no layout copies). `deform_attn` and `key_aware_attn` take
-the memory and its projections and run the chosen kernel; `set_kernel` switches a model.
+Which one runs is the model's execution (`taptr.model.execution.Execution`), passed down
+to every call; the layer files hold the reference formulations and call these when the
+execution asks for the faster ones:
+
+- deformable attention: ``grid_sample`` is the reference (Deformable DETR's, what the
+  official code computes, `ms_deform_attn`); ``gather`` computes the same sums as weighted
+  row gathers (`gather`, several times faster on CPU, no layout copies). `deform_attn` and
+  `key_aware_attn` take the memory and its projections and run the kernel they are given;
+- point self-attention on each frame's tracked points only (`point_attention`);
+- MLPs in cache-sized row blocks (`row_blocks`).
 """
 
 from __future__ import annotations
@@ -22,6 +28,8 @@ from taptr.model.ops.ms_deform_attn import (
     ms_deform_attn,
     sample_levels,
 )
+from taptr.model.ops.point_attention import tracked_point_attention
+from taptr.model.ops.row_blocks import ROW_BLOCK, blocked_mlp, use_row_blocks
 
 KERNELS = ("grid_sample", "gather")
 
@@ -93,18 +101,10 @@ def key_aware_attn(
     )
 
 
-def set_kernel(model: nn.Module, name: str) -> nn.Module:
-    """Makes every deformable attention of ``model`` use kernel ``name``; returns the model."""
-    if name not in KERNELS:
-        raise ValueError(f"unknown kernel {name!r}; choose from {', '.join(KERNELS)}")
-    for module in model.modules():
-        if hasattr(module, "kernel") and hasattr(module, "sampling_offsets"):
-            module.kernel = name
-    return model
-
-
 __all__ = [
     "KERNELS",
+    "ROW_BLOCK",
+    "blocked_mlp",
     "deform_attn",
     "gather_deform_attn",
     "gather_key_aware_attn",
@@ -115,5 +115,6 @@ __all__ = [
     "padded_table",
     "projected_table",
     "sample_levels",
-    "set_kernel",
+    "tracked_point_attention",
+    "use_row_blocks",
 ]

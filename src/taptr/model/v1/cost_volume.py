@@ -3,9 +3,9 @@
 Once per window, every level of each frame's encoder memory is mapped by a 1×1 convolution
 and correlated with a projection of each point's window-entry content (scaled by 1/√C).
 Each decoder layer then samples a 7×7 window of every level's correlation map around the
-layer's input position and hands the 4·49 values to the layer's fuser. TAPTRv2 removed this
-module (its cost grows with points × tokens); it is kept as a separate component here so
-that v1 is the v2 decoder plus this module.
+layer's input position and hands the 4·49 values to the layer's fuser
+(`taptr.model.v1.decoder.V1DecoderLayer`). TAPTRv2 removed this module (its cost grows
+with points × tokens).
 """
 
 from __future__ import annotations
@@ -33,7 +33,11 @@ class CostVolume(nn.Module):
         self.fmap_mappers = nn.ModuleList(nn.Conv2d(d_model, d_model, 1) for _ in range(num_levels))
 
     def prepare(
-        self, memory: Tensor, spatial_shapes: list[tuple[int, int]], content: Tensor
+        self,
+        memory: Tensor,
+        spatial_shapes: list[tuple[int, int]],
+        content: Tensor,
+        row_block: int | None = None,
     ) -> list[Tensor]:
         """Correlation maps of every point with every level of its own frame.
 
@@ -41,16 +45,18 @@ class CostVolume(nn.Module):
             memory: (B·W_t, S, C) encoder memory (no positional encoding).
             spatial_shapes: (H_l, W_l) per level.
             content: (B·W_t, N, C) window-entry content of each point on each frame.
+            row_block: the execution's MLP row block (`taptr.model.layers.MLP`).
 
         Returns:
             L maps (B·W_t, N, H_l, W_l).
         """
         frames, points, channels = content.shape
-        queries = self.query_proj(content)  # (B·W_t, N, C)
+        queries = self.query_proj(content, row_block)  # (B·W_t, N, C)
         maps = []
         for mapper, start, (height, width) in zip(
             self.fmap_mappers, level_start_index(spatial_shapes), spatial_shapes, strict=True
         ):
+            assert isinstance(mapper, nn.Conv2d)
             tokens = memory[:, start : start + height * width]  # (B·W_t, H·W, C)
             weight = mapper.weight.view(channels, channels)
             mapped = F.linear(tokens, weight, mapper.bias)  # a 1×1 convolution on the tokens

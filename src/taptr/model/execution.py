@@ -1,0 +1,75 @@
+"""How a model runs: the named execution modes, one choice per model.
+
+Every mode computes the same function; they differ in how, and their outputs agree up to
+float rounding (tests/test_model.py checks ``reference`` against ``fast``). The mode is
+chosen when the model is built (``build_model(config, execution="fast")``), changed only
+through `taptr.model.taptr.TAPTR.set_execution`, and handed down from the top-level module
+to the encoder, the decoder and their attentions as an argument: no submodule holds a mode.
+
+- ``reference``: the straightforward formulation, what the official code computes and the
+  benchmarks' baseline: ``grid_sample`` deformable attention, explicit N × N point-attention
+  masks, every MLP on all its rows at once.
+- ``fast``: the default for inference: deformable attention as weighted row gathers
+  (`taptr.model.ops.gather`), point attention on the tracked points of each frame only
+  (`taptr.model.ops.point_attention`), MLPs in cache-sized row blocks
+  (`taptr.model.ops.row_blocks`).
+- ``training``: what `taptr.train` builds. The ``grid_sample`` kernel, because its backward
+  is about half the cost of the gather kernel's on CPU (``embedding_bag``'s backward sorts
+  every index: 2.4 vs 4.0 s per small-preset step); grouped point attention; and row blocks
+  of ``ROW_BLOCK`` rows, which only apply where autograd records nothing (the periodic
+  evaluation of the EMA copy): training steps themselves run every MLP on all rows at once.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+from taptr.model.ops.row_blocks import ROW_BLOCK
+
+Kernel = Literal["grid_sample", "gather"]
+"""A deformable-attention kernel of `taptr.model.ops`."""
+
+
+@dataclass(frozen=True)
+class Execution:
+    """One way of running the model; outputs agree across executions up to rounding.
+
+    Attributes:
+        name: the preset's name (a key of `EXECUTIONS`).
+        kernel: deformable-attention kernel, ``grid_sample`` (reference) or ``gather``.
+        grouped_point_attention: run point self-attention on each frame's tracked points
+            only, instead of on all N points with an N × N mask.
+        row_block: MLPs at inference take their rows this many at a time; None runs all rows
+            at once.
+    """
+
+    name: str
+    kernel: Kernel
+    grouped_point_attention: bool
+    row_block: int | None
+
+
+EXECUTIONS: dict[str, Execution] = {
+    "reference": Execution("reference", "grid_sample", False, None),
+    "fast": Execution("fast", "gather", True, ROW_BLOCK),
+    "training": Execution("training", "grid_sample", True, ROW_BLOCK),
+}
+"""The named executions, by name."""
+
+DEFAULT_EXECUTION = "fast"
+"""What `taptr.model.build.build_model` picks unless told otherwise."""
+
+
+def get_execution(execution: str | Execution) -> Execution:
+    """The execution of a name (an `Execution` is returned as it is).
+
+    Raises:
+        ValueError: for an unknown name; the message lists the known ones.
+    """
+    if isinstance(execution, Execution):
+        return execution
+    if execution not in EXECUTIONS:
+        names = ", ".join(EXECUTIONS)
+        raise ValueError(f"unknown execution {execution!r}; choose from {names}")
+    return EXECUTIONS[execution]
