@@ -31,7 +31,7 @@ RESULTS = Path(__file__).resolve().parent / "results"
 def make_clip(path: Path, frames: int, height: int, width: int) -> Path:
     """A long clip: the 48-frame sample clip at (height, width), repeated."""
     from taptr.data.sample_video import make_sample_clip
-    from taptr.viz.video_io import write_video
+    from taptr.io.video import write_video
 
     if path.is_file():
         return path
@@ -55,8 +55,8 @@ def io_only(clip: Path, tracks_npz: Path, out: Path) -> None:
     import numpy as np
 
     from taptr.api.streaming import FinalFrames, draw_final
-    from taptr.viz.export import load_tracks_npz
-    from taptr.viz.video_io import iter_frames, write_video
+    from taptr.io.tracks import load_tracks_npz
+    from taptr.io.video import iter_frames, write_video
 
     saved = load_tracks_npz(tracks_npz)
 

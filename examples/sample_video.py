@@ -37,9 +37,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     import numpy as np
 
     from taptr.data.sample_video import make_sample_clip
+    from taptr.io.tracks import save_tracks_csv, save_tracks_npz
+    from taptr.io.video import write_video
     from taptr.viz.draw import draw_tracks
-    from taptr.viz.export import save_tracks_csv, save_tracks_npz
-    from taptr.viz.video_io import write_video
 
     height, width = args.size
     clip = make_sample_clip(num_frames=args.frames, height=height, width=width, seed=args.seed)

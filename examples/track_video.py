@@ -39,9 +39,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     import numpy as np
 
     import taptr
+    from taptr.io.tracks import save_tracks_csv, save_tracks_npz
+    from taptr.io.video import read_video, video_info, write_video
     from taptr.viz.draw import draw_tracks
-    from taptr.viz.export import save_tracks_csv, save_tracks_npz
-    from taptr.viz.video_io import read_video, video_info, write_video
 
     if args.video:
         video = read_video(args.video, max_frames=args.max_frames)  # (T, H, W, 3) uint8 RGB

@@ -41,7 +41,7 @@ from taptr.checkpoint import load_checkpoint
 from taptr.data.kubric import read_sequence, write_sequence
 from taptr.data.tapvid import iter_tapvid
 from taptr.types import TrackingSample
-from taptr.viz.video_io import read_video
+from taptr.io.video import read_video
 
 def rss():
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024

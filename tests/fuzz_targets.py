@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from hypothesis import strategies as st
 
-from taptr.data.safe_pickle import ALLOWED
+from taptr.io.safe_pickle import ALLOWED
 from tests import bombs
 
 CLEAN = (ValueError, FileNotFoundError)
@@ -352,7 +352,7 @@ checkpoint_bytes = st.builds(
 
 def read_video_files(files: dict[str, bytes]) -> None:
     """Reads a video file (one entry) or a frame folder (several) through `read_video`."""
-    from taptr.viz.video_io import read_video, video_info
+    from taptr.io.video import read_video, video_info
 
     with tempfile.TemporaryDirectory() as folder:
         root = Path(folder)

@@ -10,14 +10,14 @@ import pytest
 import torch
 
 import taptr
-from taptr.analyze.attention import (
+from taptr.api.inputs import grid_queries
+from taptr.apps.attention_analysis import (
     DISTANCE_EDGES,
     analyze_attention,
     attention_statistics,
     draw_attention,
     record_cross_attention,
 )
-from taptr.api.inputs import grid_queries
 from taptr.cli.main import main as cli_main
 from taptr.windows import window_ranges
 

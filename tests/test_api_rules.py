@@ -11,7 +11,7 @@ import torch
 
 import taptr
 from taptr.api.online import OnlineTracker
-from taptr.eval.tracker import track_both_ways
+from taptr.eval.trackers import track_both_ways
 
 
 @pytest.fixture(scope="module")

@@ -11,7 +11,7 @@ import torch
 import taptr
 from taptr.checkpoint import CheckpointError, UnsafeCheckpointError, read_file, save_checkpoint
 from taptr.cli.main import main as cli_main
-from taptr.convert.official import ConversionError, convert_state_dict
+from taptr.official.convert import ConversionError, convert_state_dict
 from tests.helpers import FIXTURES
 
 

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from taptr.cli.main import main
-from taptr.viz.export import load_tracks_csv, load_tracks_npz
-from taptr.viz.video_io import read_video, video_info, write_video
+from taptr.io.tracks import load_tracks_csv, load_tracks_npz
+from taptr.io.video import read_video, video_info, write_video
 
 
 @pytest.fixture(scope="module")

@@ -16,10 +16,10 @@ import pytest
 import torch
 
 from taptr.api.inputs import MAX_POINTS_ENV, grid_queries, max_points, query_tensor
+from taptr.apps.editing import read_mask
 from taptr.cli.main import build_parser, main
-from taptr.editing import read_mask
-from taptr.viz.export import load_tracks_npz
-from taptr.viz.video_io import write_video
+from taptr.io.tracks import load_tracks_npz
+from taptr.io.video import write_video
 
 
 @pytest.fixture(scope="module")

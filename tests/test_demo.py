@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 
 import taptr
-from taptr.cli.main import main
-from taptr.demo.handlers import edit_video, new_run_folder, prune_runs, track_video
-from taptr.demo.inputs import (
+from taptr.apps.demo.handlers import edit_video, new_run_folder, prune_runs, track_video
+from taptr.apps.demo.settings import Limits
+from taptr.apps.demo.uploads import (
     DemoError,
     add_point,
     build_queries,
@@ -25,18 +25,18 @@ from taptr.demo.inputs import (
     mask_from_editor,
     preview_frame,
 )
-from taptr.demo.settings import Limits
-from taptr.viz.export import CSV_HEADER, load_tracks_csv, load_tracks_npz
-from taptr.viz.video_io import video_info, write_video
+from taptr.cli.main import main
+from taptr.io.tracks import CSV_HEADER, load_tracks_csv, load_tracks_npz
+from taptr.io.video import video_info, write_video
 
 DEMO_SOURCES = Path(__file__).resolve().parents[1] / "src" / "taptr" / "demo"
 ALLOWED_IMPORTS = (
     "taptr.api",
     "taptr.viz",
-    "taptr.editing",
+    "taptr.apps.editing",
     "taptr.data.sample_video",
-    "taptr.demo",
-    "taptr.files",  # temporary files and folders, a ground-floor utility
+    "taptr.apps.demo",
+    "taptr.io.atomic",  # temporary files and folders, a ground-floor utility
 )
 
 
@@ -224,7 +224,7 @@ def test_demo_without_gradio_says_what_to_install(monkeypatch, capsys):
 
 def test_import_and_help_leave_gradio_alone():
     code = (
-        "import sys, taptr, taptr.demo, taptr.demo.settings; "
+        "import sys, taptr, taptr.apps.demo, taptr.apps.demo.settings; "
         "from taptr.cli.main import build_parser; build_parser(); "
         "assert 'gradio' not in sys.modules, 'gradio imported'"
     )
@@ -248,7 +248,7 @@ def test_demo_imports_only_the_api_layer():
 
 def test_app_builds_with_every_element_the_page_needs(predictor, tmp_path):
     pytest.importorskip("gradio", reason="the demo extra is not installed")
-    from taptr.demo.app import build_app, gradio_samples
+    from taptr.apps.demo.app import build_app, gradio_samples
 
     app = build_app(predictor, workspace=tmp_path, model_name="tiny")
     for write in gradio_samples().values():  # served from the workspace, not site-packages
@@ -261,7 +261,7 @@ def test_app_builds_with_every_element_the_page_needs(predictor, tmp_path):
 
 def test_page_shows_the_fallback_notice_next_to_the_model(tmp_path):
     pytest.importorskip("gradio", reason="the demo extra is not installed")
-    from taptr.demo.app import build_app
+    from taptr.apps.demo.app import build_app
 
     predictor = taptr.Predictor.from_pretrained(None, device="cpu")  # offline: falls back
     assert predictor.source == "taptr-small-synthetic" and predictor.notice
@@ -273,7 +273,7 @@ def test_page_shows_the_fallback_notice_next_to_the_model(tmp_path):
 
 
 def test_disk_quota_refuses_and_deletes_the_upload(tmp_path, capsys):
-    from taptr.demo.handlers import check_disk_quota
+    from taptr.apps.demo.handlers import check_disk_quota
 
     (tmp_path / "uploads").mkdir()
     upload = tmp_path / "uploads" / "big.mp4"
@@ -290,7 +290,7 @@ def test_disk_quota_refuses_and_deletes_the_upload(tmp_path, capsys):
 def test_a_killed_servers_workspace_is_removed_by_the_next(tmp_path, monkeypatch):
     import tempfile
 
-    from taptr.demo.launch import WORKSPACE_PREFIX, private_workspace
+    from taptr.apps.demo.launch import WORKSPACE_PREFIX, private_workspace
 
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     dead = tmp_path / f"{WORKSPACE_PREFIX}999999999-abcd1234.tmp"  # no such process

@@ -23,8 +23,8 @@ from pathlib import Path
 import pytest
 
 from taptr.data.sample_video import make_sample_clip
-from taptr.viz.export import CSV_HEADER
-from taptr.viz.video_io import write_video
+from taptr.io.tracks import CSV_HEADER
+from taptr.io.video import write_video
 
 CHROMIUM = Path("/usr/bin/chromium")
 CHROMIUM_ARGS = [

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from taptr.editing import (
+from taptr.apps.editing import (
     fit_region_transform,
     overlay_region,
     read_mask,

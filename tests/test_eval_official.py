@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from taptr.eval.official import OfficialTAPTR, official_padding
 from taptr.eval.protocols import OfficialProtocol, StandardProtocol
 from taptr.eval.queries import sample_queries
+from taptr.official.evaluation import OfficialTAPTR, official_padding
 from tests.test_tapvid_fabricated import make_clip
 
 

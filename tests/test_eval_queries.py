@@ -7,7 +7,7 @@ import pytest
 
 from taptr.eval.protocols import StandardProtocol, evaluate_video
 from taptr.eval.queries import sample_queries
-from taptr.eval.tracker import run_tracker, track_both_ways
+from taptr.eval.trackers import run_tracker, track_both_ways
 from tests.test_tapvid_fabricated import make_clip
 
 

@@ -10,8 +10,8 @@ import pytest
 import torch
 
 from taptr.data.sample_video import write_sample_video
-from taptr.viz.export import load_tracks_npz
-from taptr.viz.video_io import read_video
+from taptr.io.tracks import load_tracks_npz
+from taptr.io.video import read_video
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 SCRIPTS = sorted(p.stem for p in EXAMPLES.glob("*.py"))

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from taptr.viz.export import (
+from taptr.io.tracks import (
     CSV_HEADER,
     load_tracks_csv,
     load_tracks_npz,

@@ -13,9 +13,9 @@ import torch
 
 from taptr.config import tiny
 from taptr.export.backends import OnnxSteps
+from taptr.export.graph_runner import track_points
 from taptr.export.graphs import _wrappers, export_model, prepare_for_export
 from taptr.export.manifest import GRAPHS, ExportManifest
-from taptr.export.runner import track_points
 from taptr.export.verify import sample_frames, torch_tracks
 from tests.helpers import decode_window_inputs
 from tests.test_export_runner import randomised

@@ -13,14 +13,14 @@ import torch
 
 import taptr
 from taptr.config import tiny
+from taptr.export.graph_runner import track_points
 from taptr.export.graphs import _manifest, _wrappers, prepare_for_export
-from taptr.export.runner import track_points
 from taptr.export.verify import torch_tracks
 from tests.helpers import tiny_v1
 
 
 class EagerSteps:
-    """`taptr.export.runner.Steps` over the PyTorch wrappers, before any export."""
+    """`taptr.export.graph_runner.Steps` over the PyTorch wrappers, before any export."""
 
     def __init__(self, model):
         prepared = prepare_for_export(model)

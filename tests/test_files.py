@@ -6,7 +6,7 @@ import os
 
 import pytest
 
-from taptr.files import atomic_path
+from taptr.io.atomic import atomic_path
 
 
 def test_success_renames_with_umask_permissions(tmp_path):

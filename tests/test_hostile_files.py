@@ -18,7 +18,6 @@ import pytest
 import torch
 
 import taptr
-from taptr import limits
 from taptr.checkpoint import (
     CheckpointError,
     UnsafeCheckpointError,
@@ -30,10 +29,11 @@ from taptr.checkpoint import (
 from taptr.cli.main import main
 from taptr.data.check import check_kubric_folder
 from taptr.data.kubric import read_sequence, write_sequence
-from taptr.data.safe_pickle import PickleBombError, UnsafePickleError, load_npy, load_pickle
 from taptr.data.tapvid import iter_tapvid
+from taptr.io import limits
+from taptr.io.safe_pickle import PickleBombError, UnsafePickleError, load_npy, load_pickle
+from taptr.io.video import read_video, write_video
 from taptr.types import TrackingSample
-from taptr.viz.video_io import read_video, write_video
 from tests import bombs
 
 
@@ -235,7 +235,7 @@ def test_video_over_the_memory_budget_fails_before_decoding(tmp_path, monkeypatc
     frames = np.zeros((12, 64, 64, 3), np.uint8)
     path = write_video(tmp_path / "v.mp4", frames, fps=10)
     monkeypatch.setenv("TAPTR_MAX_VIDEO_BYTES", str(64 * 64 * 3 * 11))
-    import taptr.viz.video_io as video_io
+    import taptr.io.video as video_io
 
     monkeypatch.setattr(video_io, "_decode", lambda *a: pytest.fail("decoded"))
     with pytest.raises(limits.LimitError) as error:

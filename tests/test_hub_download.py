@@ -171,7 +171,7 @@ def test_an_explicit_choice_says_nothing(caplog):
 
 def test_the_command_line_warns_once_and_only_for_the_default(tmp_path, caplog):
     from taptr.cli.main import main
-    from taptr.viz.video_io import write_video
+    from taptr.io.video import write_video
 
     clip = write_video(tmp_path / "clip.mp4", np.full((6, 32, 48, 3), 90, np.uint8), fps=6)
     with caplog.at_level(logging.WARNING):

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from taptr.data.kubric import list_sequences, read_sequence, write_sequence
-from taptr.data.safe_pickle import UnsafePickleError
+from taptr.io.safe_pickle import UnsafePickleError
 from taptr.types import TrackingSample
 
 

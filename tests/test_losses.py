@@ -9,9 +9,9 @@ import pytest
 import torch
 
 import taptr
-from taptr.convert.official import convert_state_dict
 from taptr.data.sampling import ClipBatch
-from taptr.model.tracker import TrackOutput
+from taptr.model.sliding_window import TrackOutput
+from taptr.official.convert import convert_state_dict
 from taptr.train.forward import TrainingForward, batch_queries, batch_targets
 from taptr.train.losses import (
     LossWeights,

@@ -9,7 +9,7 @@ import taptr
 from taptr.config import tiny
 from taptr.geometry import clamp_to_unit
 from taptr.model.frames import EncodedFrames, PrecomputedFrames
-from taptr.model.tracker import QuerySet, run_windows
+from taptr.model.sliding_window import QuerySet, run_windows
 
 
 def _video(frames: int, generator: torch.Generator, batch: int = 1, size=(64, 64)) -> torch.Tensor:

@@ -17,7 +17,7 @@ from taptr.data.prepare_kinetics import (
     shard_name,
 )
 from taptr.data.tapvid import iter_tapvid
-from taptr.viz.video_io import write_video
+from taptr.io.video import write_video
 
 HEIGHT, WIDTH = 48, 64
 

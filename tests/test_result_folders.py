@@ -17,16 +17,16 @@ import time
 import numpy as np
 import pytest
 
-import taptr.viz.video_io as video_io
+import taptr.io.video as video_io
 from taptr.cli.main import main
-from taptr.files import (
+from taptr.io.atomic import (
     LEGACY_STALE_SECONDS,
     atomic_path,
     deferred_signals,
     remove_stale_temporaries,
     result_folder,
 )
-from taptr.viz.video_io import write_video
+from taptr.io.video import write_video
 
 
 @pytest.fixture(scope="module")
@@ -160,7 +160,7 @@ def test_a_sigkilled_write_is_cleaned_by_the_next_one(tmp_path):
     target = tmp_path / "checkpoint.pt"
     script = (
         "import os, signal, sys\n"
-        "from taptr.files import atomic_path\n"
+        "from taptr.io.atomic import atomic_path\n"
         "with atomic_path(sys.argv[1]) as tmp:\n"
         "    tmp.write_bytes(b'x' * 1000)\n"
         "    os.kill(os.getpid(), signal.SIGKILL)\n"

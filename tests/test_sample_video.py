@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from taptr.data.sample_video import make_sample_clip, write_sample_video
-from taptr.viz.video_io import read_video, video_info
+from taptr.io.video import read_video, video_info
 
 
 @pytest.fixture(scope="module")

@@ -10,9 +10,9 @@ import torch
 
 import taptr
 from taptr.config import taptrv1, tiny
-from taptr.convert.official import convert_state_dict
 from taptr.model.taptr import normalize_frames
 from taptr.model.v1 import CostVolume
+from taptr.official.convert import convert_state_dict
 from tests.helpers import FIXTURES, load_golden, tiny_v1
 
 

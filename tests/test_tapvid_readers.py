@@ -10,13 +10,13 @@ import numpy as np
 import pytest
 
 import taptr.data.tapvid as tapvid
-from taptr.data.safe_pickle import UnsafePickleError
 from taptr.data.tapvid import (
     iter_tapvid,
     pixels_to_raster,
     raster_to_pixels,
 )
 from taptr.eval.datasets import open_dataset
+from taptr.io.safe_pickle import UnsafePickleError
 from tests.test_tapvid_fabricated import make_clip, tapvid_item, write_davis, write_kinetics_shard
 
 

@@ -11,8 +11,8 @@ from taptr.checkpoint import save_checkpoint
 from taptr.cli.main import main
 from taptr.cli.videos import expand_videos, result_folders
 from taptr.config import get_config
-from taptr.viz.export import load_tracks_npz
-from taptr.viz.video_io import read_video, write_video
+from taptr.io.tracks import load_tracks_npz
+from taptr.io.video import read_video, write_video
 from tests.helpers import run_torchrun
 
 QUERIES = "0,16,22;3,30.5,20;5,50,10"
@@ -128,8 +128,8 @@ def test_a_truncated_video_is_tracked_in_memory_after_a_warning(checkpoint, tmp_
 def test_edit_from_frame_0_streams_and_equals_the_in_memory_edit(clips, checkpoint, tmp_path):
     import argparse
 
+    from taptr.apps.editing import overlay_region, sample_region_queries
     from taptr.cli.edit import _edited_frames
-    from taptr.editing import overlay_region, sample_region_queries
 
     mask = np.zeros((48, 64), bool)
     mask[14:30, 2:22] = True

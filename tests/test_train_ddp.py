@@ -12,8 +12,8 @@ import torch.multiprocessing as mp
 
 from taptr.data.synthetic import SyntheticConfig, write_dataset
 from taptr.train import loop
-from taptr.train.checkpoint import load_training_checkpoint
 from taptr.train.config import from_dict, load_config
+from taptr.train.run_state import load_training_checkpoint
 
 
 def _capture_gradients(folder, tag):

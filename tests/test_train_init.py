@@ -11,8 +11,8 @@ from torchvision.models import resnet50
 import taptr
 from taptr.checkpoint import CheckpointError
 from taptr.cli.main import main as cli_main
-from taptr.convert.official import convert_state_dict
-from taptr.train import distributed, loop
+from taptr.official.convert import convert_state_dict
+from taptr.train import data_parallel, loop
 from taptr.train.config import load_config
 from taptr.train.initialise import RESNET50_IMAGENET_FILE, init_backbone, init_from_checkpoint
 
@@ -74,7 +74,7 @@ def test_a_run_starts_from_init_from(tmp_path):
     config = load_config(
         None, ["preset=small", "model.preset=tiny", f"init_from={tmp_path / 'start.pt'}"]
     )
-    run = loop._build(config, distributed.setup("cpu"), None)
+    run = loop._build(config, data_parallel.setup("cpu"), None)
     for name, value in source.state_dict().items():
         assert torch.equal(run.model.state_dict()[name], value)
         assert torch.equal(run.ema.state_dict()[name], value)
@@ -84,7 +84,7 @@ def test_init_from_a_mismatched_checkpoint_lists_the_keys(tmp_path):
     taptr.save_checkpoint(taptr.build_model("tiny"), tmp_path / "tiny.pt")
     config = load_config(None, ["preset=small", f"init_from={tmp_path / 'tiny.pt'}"])
     with pytest.raises(CheckpointError, match="wrong shape"):
-        loop._build(config, distributed.setup("cpu"), None)
+        loop._build(config, data_parallel.setup("cpu"), None)
 
 
 def test_train_command_errors_are_one_line(tmp_path, capsys):

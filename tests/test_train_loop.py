@@ -12,11 +12,11 @@ import torch
 import taptr
 from taptr.cli.main import main as cli_main
 from taptr.data.synthetic import SyntheticConfig, write_dataset
-from taptr.train import distributed, loop
-from taptr.train.checkpoint import load_training_checkpoint
+from taptr.train import data_parallel, loop
 from taptr.train.config import load_config
 from taptr.train.forward import TrainingForward
 from taptr.train.losses import LossOutput, LossWeights
+from taptr.train.run_state import load_training_checkpoint
 
 
 @pytest.fixture(scope="module")
@@ -57,7 +57,7 @@ def one_thread():
 
 def test_a_few_steps_lower_the_loss(data, tmp_path):
     config = _config(data, tmp_path, "lr=1e-3", "lr_backbone=1e-3")
-    info = distributed.setup("cpu")
+    info = data_parallel.setup("cpu")
     run = loop._build(config, info, None)
     batches = itertools.repeat(next(loop._batches(config, info, 0)))  # one synthetic clip
     net, weights = TrainingForward(run.model), LossWeights()
@@ -156,7 +156,7 @@ def test_evaluation_metrics(data):
 
 
 def test_bf16_autocast_step_matches_fp32(data, tmp_path):
-    info = distributed.setup("cpu")
+    info = data_parallel.setup("cpu")
     losses = {}
     for precision in ("fp32", "bf16"):
         config = _config(data, tmp_path, f"precision={precision}", "model.window_dropout=0.0")

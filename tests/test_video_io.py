@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from taptr.viz.video_io import (
+from taptr.io.video import (
     iter_frames,
     natural_sort_key,
     read_video,
@@ -190,7 +190,7 @@ def test_shared_sample_metadata_and_lazy_read():
 
 
 def test_write_image_round_trip(tmp_path):
-    from taptr.viz.video_io import write_image
+    from taptr.io.video import write_image
 
     image = np.zeros((6, 9, 3), np.uint8)
     image[2, 3] = (255, 0, 0)

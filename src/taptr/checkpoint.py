@@ -4,7 +4,7 @@ Files are always read with ``torch.load(weights_only=True)``. The authors' relea
 pickles an ``argparse.Namespace`` (its training arguments), which is allow-listed; any
 other Python object in a file is reported by name and never unpickled. Before that, the file's
 size and the sizes it declares are checked against what it holds and the ``checkpoint_bytes``
-limit (`taptr.checkpoint_scan`), and a checkpoint's config and weights are validated before
+limit (`taptr.io.checkpoint_scan`), and a checkpoint's config and weights are validated before
 any module is built, so a small crafted file cannot make taptr allocate gigabytes.
 
 taptr's own format is a dict ``{"format": "taptr", "version": 1, "config": <ModelConfig as
@@ -27,19 +27,19 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from taptr import limits
-from taptr.checkpoint_scan import ScanError, scan_checkpoint
 from taptr.config import ModelConfig, taptrv1, taptrv2
-from taptr.convert.official import (
+from taptr.io import limits
+from taptr.io.atomic import atomic_path
+from taptr.io.checkpoint_scan import ScanError, scan_checkpoint
+from taptr.model.build import build_model
+from taptr.model.taptr import TAPTR
+from taptr.official.convert import (
     ConversionError,
     convert_state_dict,
     looks_official,
     official_version,
     official_weights,
 )
-from taptr.files import atomic_path
-from taptr.model.build import build_model
-from taptr.model.taptr import TAPTR
 
 FORMAT = "taptr"
 VERSION = 1
@@ -57,9 +57,9 @@ class UnsafeCheckpointError(CheckpointError):
 def read_file(path: str | os.PathLike[str]) -> Any:
     """Loads a file with ``weights_only=True``, allowing only ``argparse.Namespace`` extra.
 
-    Before ``torch.load``, `taptr.checkpoint_scan.scan_checkpoint` checks the file's size,
+    Before ``torch.load``, `taptr.io.checkpoint_scan.scan_checkpoint` checks the file's size,
     the sizes its pickles declare against the data it holds (the ``checkpoint_bytes`` limit
-    of `taptr.limits`) and the globals it names, so a small crafted file cannot make
+    of `taptr.io.limits`) and the globals it names, so a small crafted file cannot make
     PyTorch allocate gigabytes.
 
     Raises:

@@ -6,7 +6,7 @@ frame T − 1 − t; flipped back, that pass gives the frames before each query 
 forward pass the query frame and after (TAPTRv2-SPEC.md §4.4, TAPVID-PROTOCOL.md §1.7).
 
 `Predictor.track(..., backward=True)` and the evaluation's ``strided`` protocol for
-forward-only trackers (`taptr.eval.tracker.track_both_ways`) both run this one rule.
+forward-only trackers (`taptr.eval.trackers.track_both_ways`) both run this one rule.
 """
 
 from __future__ import annotations

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from taptr.limits import LIMITS, limit
+from taptr.io.limits import LIMITS, limit
 
 MAX_POINTS_ENV = LIMITS["points"].variable
 """Environment variable that raises the most query points per call (read at every call).

@@ -35,7 +35,7 @@ from taptr.api.predictor import Predictor
 from taptr.api.queries import model_queries, on_own_frames
 from taptr.api.stream_frames import StreamFrames
 from taptr.geometry import normalized_to_pixels
-from taptr.model.tracker import (
+from taptr.model.sliding_window import (
     QuerySet,
     TrackerState,
     add_points,

@@ -29,8 +29,8 @@ from taptr.api.queries import model_queries, on_own_frames
 from taptr.api.resize import resize_frames
 from taptr.geometry import normalized_to_pixels
 from taptr.model.frames import EncodedFrames
+from taptr.model.sliding_window import run_windows
 from taptr.model.taptr import TAPTR, normalize_frames
-from taptr.model.tracker import run_windows
 from taptr.types import TrackingResult
 from taptr.windows import window_ranges
 
@@ -224,7 +224,7 @@ class Predictor:
 
 def _read_if_path(video: VideoInput) -> np.ndarray | Tensor:
     if isinstance(video, (str, os.PathLike)):
-        from taptr.viz.video_io import read_video
+        from taptr.io.video import read_video
 
         return read_video(video)
     return video

@@ -12,7 +12,7 @@ import torch
 from torch import Tensor
 
 from taptr.geometry import pixels_to_normalized
-from taptr.model.tracker import QuerySet
+from taptr.model.sliding_window import QuerySet
 
 
 def model_queries(

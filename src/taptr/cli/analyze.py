@@ -49,9 +49,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run_attention(args: argparse.Namespace) -> int:
     """Runs the attention analysis and writes the JSON and the PNG."""
-    from taptr.analyze.attention import analyze_attention, attention_statistics, draw_attention
     from taptr.api.inputs import grid_queries
-    from taptr.viz.video_io import read_video, write_image
+    from taptr.apps.attention_analysis import (
+        analyze_attention,
+        attention_statistics,
+        draw_attention,
+    )
+    from taptr.io.video import read_video, write_image
 
     check_model_arguments(args)
     check_at_least(args.grid, 1, "--grid")

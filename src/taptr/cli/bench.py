@@ -74,7 +74,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Runs the cases and prints the table."""
-    from taptr.bench import (
+    from taptr.apps.benchmark import (
         BenchConfig,
         compare,
         format_table,

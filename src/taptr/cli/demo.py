@@ -16,7 +16,7 @@ from taptr.cli.track import add_model_arguments, check_model_arguments, load_pre
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     """Registers the subcommand."""
-    from taptr.demo.settings import DEFAULT_HOST, DEFAULT_PORT, Limits
+    from taptr.apps.demo.settings import DEFAULT_HOST, DEFAULT_PORT, Limits
 
     defaults = Limits()
     parser = subparsers.add_parser(
@@ -64,8 +64,8 @@ def run(args: argparse.Namespace) -> int:
             "taptr demo: error: the demo needs Gradio: pip install 'taptr[demo]'", file=sys.stderr
         )
         return 2
-    from taptr.demo.launch import private_workspace, serve
-    from taptr.demo.settings import Limits
+    from taptr.apps.demo.launch import private_workspace, serve
+    from taptr.apps.demo.settings import Limits
 
     check_model_arguments(args)
     if not args.max_disk_gb > 0:

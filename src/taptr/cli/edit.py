@@ -59,8 +59,8 @@ def run(args: argparse.Namespace) -> int:
     """Tracks the region and writes the edited video."""
     from taptr.api.inputs import check_num_points
     from taptr.api.online import FrameCountError
-    from taptr.editing import overlay_region, read_mask, sample_region_queries
-    from taptr.viz.video_io import read_video, video_info, write_video
+    from taptr.apps.editing import overlay_region, read_mask, sample_region_queries
+    from taptr.io.video import read_video, video_info, write_video
 
     # Everything that can fail on the arguments fails here, before the long run.
     check_output_file(args.out, suffixes=(".mp4",))
@@ -117,8 +117,8 @@ def _edited_frames(
     from tqdm.auto import tqdm
 
     from taptr.api.streaming import track_frames
-    from taptr.editing import apply_overlay, prepare_overlay
-    from taptr.viz.video_io import iter_frames
+    from taptr.apps.editing import apply_overlay, prepare_overlay
+    from taptr.io.video import iter_frames
 
     num_frames = min(declared, args.max_frames or declared)
     prepared = prepare_overlay(overlay, mask, queries[:, 1:])

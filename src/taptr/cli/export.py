@@ -2,7 +2,7 @@
 
 Writes three graphs (frames → memory, memory → initial point content, one window of the
 decoder with its carried state) and ``taptr-export.json`` (input size, window rules),
-enough for a sliding-window loop outside Python; ``taptr.export.runner`` drives them with
+enough for a sliding-window loop outside Python; ``taptr.export.graph_runner`` drives them with
 the model's own window driver. ``--check`` tracks the package's sample clip with both the
 model and the graphs and prints the largest differences and the time each took.
 """

@@ -28,7 +28,7 @@ import numpy as np
 if TYPE_CHECKING:
     import argparse
 
-    from taptr.viz.video_io import VideoInfo
+    from taptr.io.video import VideoInfo
 
 MAX_LINE_CHARS = 4096
 """Longest line of a points file; a longer one is not a list of points."""
@@ -130,7 +130,7 @@ def check_listed_points(
 def build_queries(args: argparse.Namespace, num_frames: int, height: int, width: int) -> np.ndarray:
     """The (N, 3) queries the arguments ask for, on a video of that many frames and size."""
     from taptr.api.inputs import check_num_points, grid_queries
-    from taptr.editing import read_mask, sample_region_queries
+    from taptr.apps.editing import read_mask, sample_region_queries
 
     listed = listed_points(args)
     if listed is not None:

@@ -24,7 +24,7 @@ from taptr.cli.points import build_queries, check_listed_points, listed_points
 
 if TYPE_CHECKING:
     from taptr.api.predictor import Predictor
-    from taptr.viz.video_io import VideoInfo
+    from taptr.io.video import VideoInfo
 
 logger = logging.getLogger(__name__)
 
@@ -157,7 +157,7 @@ def load_predictor(args: argparse.Namespace) -> Predictor:
 def run(args: argparse.Namespace) -> int:
     """Tracks every video named and writes its three outputs; prints one summary."""
     from taptr.cli.videos import expand_videos, is_complete, my_share, result_folders
-    from taptr.distributed import gather_objects, join_process_group
+    from taptr.process_group import gather_objects, join_process_group
 
     # Everything that can fail on the arguments fails here, before the long run.
     check_track_arguments(args)
@@ -207,8 +207,8 @@ FINISHED = ("tracks.npz", "tracks.csv", "overlay.mp4")
 
 def check_video(args: argparse.Namespace, video: Path, listed: np.ndarray | None) -> VideoInfo:
     """Reads a video's header and checks the queries and mask against it."""
-    from taptr.editing import read_mask
-    from taptr.viz.video_io import video_info
+    from taptr.apps.editing import read_mask
+    from taptr.io.video import video_info
 
     info = video_info(video)
     if listed is not None:
@@ -258,8 +258,8 @@ def _track_streaming(
 
     from taptr.api.inputs import query_tensor
     from taptr.api.streaming import draw_final, track_frames
-    from taptr.files import result_folder
-    from taptr.viz.video_io import iter_frames, write_video
+    from taptr.io.atomic import result_folder
+    from taptr.io.video import iter_frames, write_video
 
     kept: list[tuple[np.ndarray, np.ndarray]] = []
     last_frame: list[np.ndarray] = [np.zeros(0, np.uint8)]
@@ -297,9 +297,9 @@ def _track_in_memory(
     info: VideoInfo,
 ) -> tuple[int, int]:
     """Reads the whole video first (needed by --backward and by unknown frame counts)."""
-    from taptr.files import result_folder
+    from taptr.io.atomic import result_folder
+    from taptr.io.video import read_video, write_video
     from taptr.viz.draw import draw_tracks
-    from taptr.viz.video_io import read_video, write_video
 
     frames = read_video(video, max_frames=args.max_frames)
     queries = listed if listed is not None else build_queries(args, *frames.shape[:3])
@@ -327,7 +327,7 @@ def _write_tracks(
     queries: np.ndarray,
     info: VideoInfo,
 ) -> None:
-    from taptr.viz.export import save_tracks_csv, save_tracks_npz
+    from taptr.io.tracks import save_tracks_csv, save_tracks_npz
 
     metadata = {
         "video": str(video),
@@ -353,8 +353,8 @@ def _write_trajectories(
     visibility: np.ndarray,
     query_frames: np.ndarray | None,
 ) -> None:
+    from taptr.io.video import write_image
     from taptr.viz.draw import draw_trajectories
-    from taptr.viz.video_io import write_image
 
     starts = None if query_frames is None else np.asarray(query_frames).astype(np.int64)
     write_image(

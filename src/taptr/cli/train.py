@@ -71,8 +71,8 @@ def _config(args: argparse.Namespace) -> TrainConfig:
 
 def run(args: argparse.Namespace) -> int:
     """Trains; prints the path of the final weights."""
-    from taptr.train.checkpoint import CHECKPOINT_NAME
     from taptr.train.loop import NonFiniteLossError, train
+    from taptr.train.run_state import CHECKPOINT_NAME
 
     if args.out:
         check_output_folder(args.out)

@@ -13,7 +13,7 @@ import glob
 import os
 from pathlib import Path
 
-from taptr.viz.video_io import IMAGE_SUFFIXES, VIDEO_SUFFIXES
+from taptr.io.video import IMAGE_SUFFIXES, VIDEO_SUFFIXES
 
 _GLOB_CHARACTERS = set("*?[")
 

@@ -4,7 +4,7 @@ Every sequence is read with the same reader that training and evaluation use
 (`taptr.data.kubric.read_sequence`), so a folder that passes here loads there. Beyond what
 the reader refuses (missing or unreadable frames, a missing or malformed ``.npy``, a
 ``.npy`` header or frame header declaring more than the file holds or the limits of
-`taptr.limits` allow, frames of different sizes, coordinate arrays of the wrong shape or
+`taptr.io.limits` allow, frames of different sizes, coordinate arrays of the wrong shape or
 with non-finite values; each a one-line finding), the check warns about data that
 loads but is probably wrong:
 

@@ -12,7 +12,7 @@ The key named ``visibility`` holds occlusion flags: CoTracker's generator stores
 that name and both CoTracker's and TAPTR's loaders invert it (co-tracker#152). Sequence
 folders named by integers (TAPTR's ``r512/{train,val}`` roots) are sorted numerically, and
 frames named ``{:03d}.png`` (or any other integer) in numeric order. ``.npy`` files are read
-with the restricted unpickler of `taptr.data.safe_pickle`, never with ``allow_pickle``.
+with the restricted unpickler of `taptr.io.safe_pickle`, never with ``allow_pickle``.
 """
 
 from __future__ import annotations
@@ -23,10 +23,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from taptr import limits
-from taptr.data.safe_pickle import load_npy
-from taptr.files import atomic_path
-from taptr.image_guard import image_size
+from taptr.io import limits
+from taptr.io.atomic import atomic_path
+from taptr.io.image_guard import image_size
+from taptr.io.safe_pickle import load_npy
 from taptr.types import TrackingSample
 
 FRAMES_DIR = "frames"

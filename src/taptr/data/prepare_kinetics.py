@@ -39,7 +39,7 @@ import numpy as np
 from PIL import Image
 from tqdm import tqdm
 
-from taptr.files import atomic_path
+from taptr.io.atomic import atomic_path
 
 logger = logging.getLogger(__name__)
 

@@ -20,7 +20,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from taptr.viz.video_io import write_video
+from taptr.io.video import write_video
 
 
 @dataclass(frozen=True)

@@ -7,7 +7,7 @@ pixel and (1, 1) the bottom-right corner of the bottom-right one; ``occluded`` i
 A pickle holds a dict name → item (DAVIS, RoboTAP) or a list of items (RGB-Stacking, each
 Kinetics shard); unnamed videos are named by their index in the set.
 
-Files are read with the restricted unpickler of `taptr.data.safe_pickle` only, so a crafted
+Files are read with the restricted unpickler of `taptr.io.safe_pickle` only, so a crafted
 file cannot run code. Videos are handed out as `PendingVideo` entries whose ``load`` builds
 the `TrackingSample` (decoding JPEG frames then), so one video at a time is decoded.
 
@@ -28,9 +28,9 @@ from typing import Any, NamedTuple
 import numpy as np
 from PIL import Image  # noqa: F401  (tests count the frames opened through it)
 
-from taptr import limits
-from taptr.data.safe_pickle import load_pickle
-from taptr.image_guard import open_image, to_rgb
+from taptr.io import limits
+from taptr.io.image_guard import open_image, to_rgb
+from taptr.io.safe_pickle import load_pickle
 from taptr.types import TrackingSample
 
 logger = logging.getLogger(__name__)
@@ -107,7 +107,7 @@ def decode_frames(frames: Any, label: str = "video") -> np.ndarray:
 
     The frame count and the decoded size (T × H × W × 3 bytes, from the first frame's
     header) are checked against the ``video_frames`` and ``video_bytes`` limits of
-    `taptr.limits` before any frame is decoded, and every frame's header before it is.
+    `taptr.io.limits` before any frame is decoded, and every frame's header before it is.
 
     Args:
         frames: the item's ``video`` entry.

@@ -13,7 +13,7 @@ from taptr.eval.metrics import (
     mean_over_videos,
     tapvid_metrics,
 )
-from taptr.eval.tracker import Tracker
+from taptr.eval.trackers import Tracker
 
 __all__ = [
     "METRIC_NAMES",

@@ -12,7 +12,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from taptr.eval.tracker import query_frames
+from taptr.eval.trackers import query_frames
 
 
 class StaticTracker:

@@ -37,7 +37,7 @@ from taptr.eval.metrics import CALIBRATION_METRICS, tapvid_metrics
 from taptr.eval.predictor_tracker import PredictorTracker
 from taptr.eval.protocols import StandardProtocol
 from taptr.eval.queries import sample_queries
-from taptr.files import atomic_path
+from taptr.io.atomic import atomic_path
 from taptr.types import TrackingSample
 
 logger = logging.getLogger(__name__)

@@ -16,7 +16,7 @@ import numpy as np
 
 from taptr.data.tapvid import PendingVideo
 from taptr.eval.protocols import EvalProtocol, Prediction, VideoResult
-from taptr.eval.tracker import query_frames
+from taptr.eval.trackers import query_frames
 
 OVERLAY_FPS = 10.0
 
@@ -85,8 +85,8 @@ def write_overlay(
         query_mode: in ``first`` mode points are drawn from their query frame on, in
             ``strided`` mode on every frame.
     """
+    from taptr.io.video import write_video
     from taptr.viz.draw import draw_tracks, point_colors
-    from taptr.viz.video_io import write_video
 
     video = protocol.prepare(candidate.pending.load()).video
     prediction = candidate.prediction

@@ -21,7 +21,7 @@ from typing import Any
 
 from taptr.eval.metrics import METRIC_NAMES, mean_over_videos
 from taptr.eval.protocols import VideoResult
-from taptr.files import atomic_path
+from taptr.io.atomic import atomic_path
 
 RESULTS_FILE = "results.json"
 TABLE_FILE = "videos.csv"

@@ -21,7 +21,6 @@ from tqdm import tqdm
 
 from taptr.data.tapvid import PendingVideo
 from taptr.eval.datasets import DATASETS, open_dataset
-from taptr.eval.distributed import SINGLE_PROCESS, Shard, gather, process_group, resolve_device
 from taptr.eval.metrics import QUERY_MODES
 from taptr.eval.overlays import Candidate, WorstVideos, worst_indices, write_overlay
 from taptr.eval.protocols import (
@@ -32,6 +31,7 @@ from taptr.eval.protocols import (
     evaluate_video,
 )
 from taptr.eval.report import build_report, package_versions, write_report
+from taptr.eval.sharding import SINGLE_PROCESS, Shard, gather, process_group, resolve_device
 
 logger = logging.getLogger(__name__)
 
@@ -99,7 +99,7 @@ def build_protocol(config: EvalConfig, device: str) -> EvalProtocol:
     """The protocol and tracker ``config`` names, with the model (if any) on ``device``."""
     if config.protocol == "official":
         from taptr.checkpoint import load_checkpoint
-        from taptr.eval.official import OfficialTAPTR
+        from taptr.official.evaluation import OfficialTAPTR
 
         assert config.checkpoint is not None  # checked by EvalConfig
         return OfficialProtocol(OfficialTAPTR(load_checkpoint(config.checkpoint), device=device))

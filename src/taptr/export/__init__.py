@@ -3,8 +3,8 @@
 - `export_model(model, directory, "onnx" | "torchscript")` writes three graphs and a
   manifest (`taptr.export.graphs`);
 - `track_points(steps, manifest, frames, ...)` tracks with them through the model's own
-  sliding-window driver (`taptr.export.runner`, whose `GraphBackend` adapts the graphs to
-  `taptr.model.tracker`), with `load_steps(directory)` for the graphs, and `track_video`
+  sliding-window driver (`taptr.export.graph_runner`, whose `GraphBackend` adapts the graphs to
+  `taptr.model.sliding_window`), with `load_steps(directory)` for the graphs, and `track_video`
   the same in input pixels with (t, x, y) queries (`taptr.export.video`);
 - `compare(model, directory)` checks an export against the model (`taptr.export.verify`);
 - `compile_model(model)` is the optional ``torch.compile`` path for PyTorch inference.
@@ -21,9 +21,9 @@ from typing import Any
 _EXPORTS = {
     "export_model": "taptr.export.graphs",
     "ExportManifest": "taptr.export.manifest",
-    "track_points": "taptr.export.runner",
-    "TrackArrays": "taptr.export.runner",
-    "GraphBackend": "taptr.export.runner",
+    "track_points": "taptr.export.graph_runner",
+    "TrackArrays": "taptr.export.graph_runner",
+    "GraphBackend": "taptr.export.graph_runner",
     "track_video": "taptr.export.video",
     "load_steps": "taptr.export.backends",
     "OnnxSteps": "taptr.export.backends",

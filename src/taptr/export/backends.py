@@ -1,7 +1,7 @@
 """Running exported graphs: onnxruntime sessions or TorchScript modules behind one interface.
 
-Both classes implement `taptr.export.runner.Steps` (numpy in, numpy out), which
-`taptr.export.runner.GraphBackend` puts under the model's own window driver, whichever the
+Both classes implement `taptr.export.graph_runner.Steps` (numpy in, numpy out), which
+`taptr.export.graph_runner.GraphBackend` puts under the model's own window driver, whichever the
 format. `load_steps` picks the class from the manifest.
 """
 
@@ -17,7 +17,7 @@ from taptr.export.manifest import GRAPHS, INPUT_NAMES, ExportManifest
 
 
 class _GraphSteps:
-    """`taptr.export.runner.Steps` over three named graphs; subclasses say how one runs."""
+    """`taptr.export.graph_runner.Steps` over three named graphs; subclasses say how one runs."""
 
     format: str
 
@@ -40,7 +40,7 @@ class _GraphSteps:
         return self._run("init_points", memory, positions)[0]
 
     def decode(self, *inputs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """One window; inputs and outputs as `taptr.export.runner.Steps.decode`."""
+        """One window; inputs and outputs as `taptr.export.graph_runner.Steps.decode`."""
         positions, visibility, content = self._run("decode_window", *inputs)
         return positions, visibility, content
 

@@ -25,7 +25,7 @@ INPUT_NAMES = {
     "init_points": ("memory", "positions"),
     "decode_window": ("memory", "content", "positions", "initial", "tracking", "update"),
 }
-"""Input names of each graph, in call order (shapes: `taptr.export.runner.Steps`)."""
+"""Input names of each graph, in call order (shapes: `taptr.export.graph_runner.Steps`)."""
 
 OUTPUT_NAMES = {
     "encoder": ("memory",),

@@ -1,9 +1,9 @@
 """Export-friendly wrappers around the model's per-window pieces.
 
-The sliding-window loop (`taptr.model.tracker`) is Python bookkeeping around three
+The sliding-window loop (`taptr.model.sliding_window`) is Python bookkeeping around three
 tensor functions; each wrapper below is one of them with plain tensor inputs and outputs
 and batch size one, so that it can be traced or exported and driven by a loop written in
-any language (`taptr.export.runner` drives them through the same window driver):
+any language (`taptr.export.graph_runner` drives them through the same window driver):
 
 - `FrameEncoder`: backbone, input projections and deformable encoder of some frames.
 - `PointInitializer`: the initial content of points from the memory of their start frame.

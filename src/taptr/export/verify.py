@@ -1,8 +1,8 @@
 """Checking exported graphs against the PyTorch model on a clip: parity and speed.
 
 `compare` tracks the same points through the same frames twice with the one
-sliding-window driver (`taptr.model.tracker.run_windows`): over the PyTorch model (its
-current attention kernel) and over the exported graphs (`taptr.export.runner`), and reports
+sliding-window driver (`taptr.model.sliding_window.run_windows`): over the PyTorch model (its
+current attention kernel) and over the exported graphs (`taptr.export.graph_runner`), and reports
 the largest differences and the time each took.
 """
 
@@ -18,10 +18,10 @@ import torch
 
 from taptr.data.sample_video import make_sample_clip
 from taptr.export.backends import load_steps
-from taptr.export.runner import TrackArrays, track_points
+from taptr.export.graph_runner import TrackArrays, track_points
 from taptr.model.frames import EncodedFrames
+from taptr.model.sliding_window import QuerySet, run_windows
 from taptr.model.taptr import TAPTR, normalize_frames
-from taptr.model.tracker import QuerySet, run_windows
 
 
 class Parity(NamedTuple):

@@ -1,7 +1,7 @@
 """Pixels in, pixels out over exported graphs, with the predictor's conventions.
 
 `track_video` takes a uint8 video and (t, x, y) pixel queries, resizes frames to the
-export's input size window by window, runs `taptr.export.runner.track_points`, and maps the
+export's input size window by window, runs `taptr.export.graph_runner.track_points`, and maps the
 positions back to the input pixels, with the predictor's forward-only conventions: frames
 before a point's query frame are not visible, and each query comes back exactly on its own
 frame, visible.
@@ -17,8 +17,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from taptr.export.graph_runner import Steps, track_points
 from taptr.export.manifest import ExportManifest
-from taptr.export.runner import Steps, track_points
 
 
 def resize_frames(frames: np.ndarray, size: tuple[int, int]) -> np.ndarray:

@@ -2,8 +2,14 @@
 
 from taptr.model.build import build_model
 from taptr.model.execution import EXECUTIONS, Execution, get_execution
+from taptr.model.sliding_window import (
+    QuerySet,
+    TrackerState,
+    TrackOutput,
+    run_windows,
+    window_ranges,
+)
 from taptr.model.taptr import TAPTR, FrameFeatures, normalize_frames
-from taptr.model.tracker import QuerySet, TrackerState, TrackOutput, run_windows, window_ranges
 
 __all__ = [
     "EXECUTIONS",

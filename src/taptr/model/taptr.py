@@ -2,7 +2,7 @@
 
 `encode` turns frames into multi-scale memory; `initial_content` builds point queries;
 `decode_window` runs the decoder over one window; `update_content` computes the content
-handed to the next window. The sliding-window loop lives in `taptr.model.tracker`.
+handed to the next window. The sliding-window loop lives in `taptr.model.sliding_window`.
 
 How the model runs (`taptr.model.execution`) is this module's ``execution``, the only
 mode anywhere in the model: every method here hands it down as an argument.

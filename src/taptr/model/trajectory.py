@@ -1,6 +1,6 @@
 """The driver's state: per-frame trajectories, the points, and the final output.
 
-The window driver (`taptr.model.tracker`) writes results window by window and copies a
+The window driver (`taptr.model.sliding_window`) writes results window by window and copies a
 window's last frame to all later frames. Keeping those later frames as one shared tensor
 makes the copy free, keeps memory bounded by the frames still in use, and lets finished
 frames be released. `TrackerState` bundles the trajectories of every point with what the

@@ -12,8 +12,8 @@ from torch import Tensor, nn
 
 from taptr.data.sampling import ClipBatch
 from taptr.model.frames import PrecomputedFrames
+from taptr.model.sliding_window import QuerySet, TrackOutput, run_windows
 from taptr.model.taptr import TAPTR, normalize_frames
-from taptr.model.tracker import QuerySet, TrackOutput, run_windows
 from taptr.train.losses import Targets
 
 

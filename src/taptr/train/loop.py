@@ -26,19 +26,11 @@ from torch import nn, optim
 from taptr.checkpoint import save_checkpoint
 from taptr.data.kubric import list_sequences
 from taptr.data.sampling import ClipBatch
-from taptr.distributed import gather_objects
-from taptr.files import atomic_path
+from taptr.io.atomic import atomic_path
 from taptr.model.build import build_model
 from taptr.model.taptr import TAPTR
-from taptr.train import distributed
-from taptr.train.checkpoint import (
-    CHECKPOINT_NAME,
-    check_resumable,
-    load_training_checkpoint,
-    restore,
-    rng_state,
-    save_training_checkpoint,
-)
+from taptr.process_group import gather_objects
+from taptr.train import data_parallel
 from taptr.train.config import TrainConfig
 from taptr.train.dataset import ClipDataset, MicroBatchSampler, clip_loader, held_out_clips
 from taptr.train.ema import ModelEMA
@@ -48,6 +40,14 @@ from taptr.train.losses import LossWeights, tracking_loss
 from taptr.train.monitor import Monitor
 from taptr.train.optim import apply_milestones, build_optimizer
 from taptr.train.precision import autocast, grad_scaler
+from taptr.train.run_state import (
+    CHECKPOINT_NAME,
+    check_resumable,
+    load_training_checkpoint,
+    restore,
+    rng_state,
+    save_training_checkpoint,
+)
 from taptr.train.validate import evaluate
 
 logger = logging.getLogger(__name__)
@@ -72,14 +72,14 @@ class Run:
 
 
 def _build(
-    config: TrainConfig, info: distributed.Distributed, resume: str | os.PathLike[str] | None
+    config: TrainConfig, info: data_parallel.Distributed, resume: str | os.PathLike[str] | None
 ) -> Run:
     """Fresh (or initialised, or resumed) model, EMA, optimiser, schedule and scaler."""
     state = None
     if resume is not None:
         state = load_training_checkpoint(resume)
         check_resumable(config, state["train_config"], str(resume))
-    distributed.seed_process(config.seed, 0)  # the same fresh weights on every process
+    data_parallel.seed_process(config.seed, 0)  # the same fresh weights on every process
     # the grid_sample kernel: its backward is about half the gather kernel's cost on CPU
     # (see taptr.model.execution)
     model = build_model(config.model, execution="training")
@@ -104,7 +104,7 @@ def _build(
         grad_scaler(config.precision, info.device),
         0,
     )
-    distributed.seed_process(config.seed, info.rank)  # dropout masks differ per process
+    data_parallel.seed_process(config.seed, info.rank)  # dropout masks differ per process
     if state is not None:
         run.step = restore(
             state,
@@ -121,7 +121,9 @@ def _build(
     return run
 
 
-def _batches(config: TrainConfig, info: distributed.Distributed, step: int) -> Iterator[ClipBatch]:
+def _batches(
+    config: TrainConfig, info: data_parallel.Distributed, step: int
+) -> Iterator[ClipBatch]:
     """This process's micro-batches from optimizer step ``step`` on."""
     if not config.data.root:
         raise ValueError("data.root is empty: set it to a folder of Kubric-layout sequences")
@@ -144,7 +146,7 @@ def _optimizer_step(
     batches: Iterator[ClipBatch],
     weights: LossWeights,
     config: TrainConfig,
-    info: distributed.Distributed,
+    info: data_parallel.Distributed,
 ) -> dict[str, float]:
     """Accumulates ``grad_accum`` micro-batches, clips and steps; returns mean loss terms."""
     sums: dict[str, float] = defaultdict(float)
@@ -153,11 +155,11 @@ def _optimizer_step(
         tic = time.perf_counter()
         batch = next(batches).to(info.device)
         waited += time.perf_counter() - tic
-        with distributed.no_sync(net, skip=micro < config.grad_accum - 1):
+        with data_parallel.no_sync(net, skip=micro < config.grad_accum - 1):
             with autocast(config.precision, info.device):
                 output = net(*batch)
             loss = tracking_loss(output, batch_targets(batch), weights)
-            if not distributed.all_finite(loss.total):
+            if not data_parallel.all_finite(loss.total):
                 terms = ", ".join(f"{k} {v.item():.4g}" for k, v in loss.terms.items())
                 raise NonFiniteLossError(f"non-finite loss {loss.total.item()} ({terms})")
             run.scaler.scale(loss.total / config.grad_accum).backward()
@@ -174,7 +176,7 @@ def _optimizer_step(
     return {**sums, "grad_norm": norm.item(), "data_seconds": waited}
 
 
-def _save(run: Run, config: TrainConfig, info: distributed.Distributed, path: Path) -> None:
+def _save(run: Run, config: TrainConfig, info: data_parallel.Distributed, path: Path) -> None:
     states = gather_objects(rng_state())  # every process's dropout generator
     if info.is_main:
         save_training_checkpoint(
@@ -193,7 +195,7 @@ def _save(run: Run, config: TrainConfig, info: distributed.Distributed, path: Pa
 def _periodic(
     run: Run,
     config: TrainConfig,
-    info: distributed.Distributed,
+    info: data_parallel.Distributed,
     monitor: Monitor,
     held_out: list[Path],
     weights: LossWeights,
@@ -201,14 +203,14 @@ def _periodic(
     """Logs, evaluates and saves when their step comes; returns whether it saved."""
     last = run.step == config.steps
     if run.step % config.log_every == 0 or last:
-        means = distributed.mean_over_processes(monitor.means(), info.device)
+        means = data_parallel.mean_over_processes(monitor.means(), info.device)
         monitor.train(run.step, {**means, "lr": run.optimizer.param_groups[-1]["lr"]})
     if held_out and (run.step % config.eval_every == 0 or last):
         if info.is_main:  # the others wait at the barrier
             clips = held_out_clips(held_out, config.data, config.model.input_size, config.seed)
             metrics = evaluate(run.ema.module, clips, weights, info.device, config.precision)
             monitor.evaluation(run.step, metrics)
-        distributed.barrier()
+        data_parallel.barrier()
     if run.step % config.checkpoint_every == 0 or last:
         _save(run, config, info, Path(config.out_dir) / CHECKPOINT_NAME)
         return True
@@ -228,14 +230,14 @@ def train(config: TrainConfig, resume: str | os.PathLike[str] | None = None) -> 
     Raises:
         NonFiniteLossError: the loss diverged; the message names the last good checkpoint.
     """
-    info = distributed.setup(config.device)
+    info = data_parallel.setup(config.device)
     try:
         run_dir = Path(config.out_dir)
         run = _build(config, info, resume)
         if info.is_main:
             with atomic_path(run_dir / "config.json") as tmp:
                 tmp.write_text(json.dumps(config.to_dict(), indent=2) + "\n")
-        net = distributed.wrap(TrainingForward(run.model), info)
+        net = data_parallel.wrap(TrainingForward(run.model), info)
         batches = _batches(config, info, run.step)
         held_out = []
         if config.data.val_root and config.eval_every:
@@ -267,4 +269,4 @@ def train(config: TrainConfig, resume: str | os.PathLike[str] | None = None) -> 
             save_checkpoint(run.ema.module, final)
         return final
     finally:
-        distributed.teardown()
+        data_parallel.teardown()

@@ -30,7 +30,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from taptr.model.tracker import TrackOutput
+from taptr.model.sliding_window import TrackOutput
 
 
 @dataclass(frozen=True)

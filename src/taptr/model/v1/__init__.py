@@ -7,7 +7,7 @@
 - `taptr.model.v1.memory_efficient`: the memory-efficient initialisation of the tracker.
 
 `taptr.model.build.build_model` picks these for configs with ``version == 1``; parameter
-names are those of the official v1 checkpoint as converted by `taptr.convert.official`.
+names are those of the official v1 checkpoint as converted by `taptr.official.convert`.
 """
 
 from taptr.model.v1.cost_volume import CostVolume

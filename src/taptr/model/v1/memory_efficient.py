@@ -10,7 +10,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from taptr.model.tracker import FrameSource, WindowBackend
+    from taptr.model.sliding_window import FrameSource, WindowBackend
     from taptr.model.trajectory import TrackerState
 
 
@@ -29,7 +29,7 @@ def initialise_in_first_window(
     initialises here even when the first window has nothing to update.
 
     Args:
-        backend: the network (`taptr.model.tracker.WindowBackend`).
+        backend: the network (`taptr.model.sliding_window.WindowBackend`).
         state: the driver state (updated in place).
         window_index: index of the window about to be decoded.
         first: its first frame.
@@ -39,7 +39,7 @@ def initialise_in_first_window(
     if window_index != 0 or not backend.memory_efficient or backend.training:
         return
     # imported here: the driver imports this module
-    from taptr.model.tracker import initialise_points
+    from taptr.model.sliding_window import initialise_points
 
     content_frames = state.queries.start_frames.clamp(max=last)  # (B, N)
     initialise_points(backend, state, frames(first, last), first, content_frames)

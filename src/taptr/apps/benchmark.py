@@ -120,7 +120,7 @@ def _stage_timer(model: nn.Module, device: str) -> Iterator[dict[str, float]]:
 
 
 def _inputs(config: BenchConfig) -> tuple[torch.Tensor, Any]:
-    from taptr.model.tracker import QuerySet
+    from taptr.model.sliding_window import QuerySet
 
     generator = torch.Generator().manual_seed(config.seed)
     # uint8 frames, as a decoded video: holding 300 frames as float32 would be most of the
@@ -137,8 +137,8 @@ def _inputs(config: BenchConfig) -> tuple[torch.Tensor, Any]:
 
 def _track(model: TAPTR, config: BenchConfig, video: torch.Tensor, queries: Any) -> Any:
     from taptr.model.frames import EncodedFrames, PrecomputedFrames
+    from taptr.model.sliding_window import QuerySet, run_windows
     from taptr.model.taptr import normalize_frames
-    from taptr.model.tracker import QuerySet, run_windows
 
     device = torch.device(config.device)
     video = video.to(device)
@@ -207,7 +207,7 @@ def _count_flops(model: TAPTR, config: BenchConfig, video: torch.Tensor, queries
 def run_isolated(config: BenchConfig, positions_out: str | None = None) -> BenchResult:
     """Runs one case in a fresh Python process and returns its measurements."""
     payload = json.dumps({"config": asdict(config), "positions_out": positions_out})
-    command = [sys.executable, "-m", "taptr.bench", payload]
+    command = [sys.executable, "-m", "taptr.apps.benchmark", payload]
     done = subprocess.run(command, capture_output=True, text=True, check=False)
     if done.returncode != 0:
         raise RuntimeError(f"benchmark worker failed:\n{done.stderr.strip()[-2000:]}")
@@ -287,7 +287,7 @@ def peak_flops(threads: int, size: int = 2048, repeats: int = 5) -> float:
 
 def write_json(path: str | os.PathLike[str], data: Any) -> Path:
     """Writes results as JSON, atomically."""
-    from taptr.files import atomic_path
+    from taptr.io.atomic import atomic_path
 
     def default(obj: Any) -> Any:
         if isinstance(obj, BenchResult):
@@ -300,7 +300,7 @@ def write_json(path: str | os.PathLike[str], data: Any) -> Path:
 
 
 def main() -> None:
-    """Worker entry point: ``python -m taptr.bench '<json request>'`` prints one JSON line."""
+    """Worker entry point: ``python -m taptr.apps.benchmark '<request>'`` prints a JSON line."""
     request = json.loads(sys.argv[1])
     config = BenchConfig(**{**request["config"], "size": tuple(request["config"]["size"])})
     result = run_case(config, request.get("positions_out"))

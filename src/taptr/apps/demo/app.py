@@ -9,10 +9,11 @@ by two tabs:
 - **Edit video**: paint a region on the query frame, upload an image, get the video with
   the image stuck to the region.
 
-Everything that is not layout lives in `taptr.demo.inputs` and `taptr.demo.handlers`; each
-callback here converts their `DemoError` (or any ValueError) into a `gr.Error`, which the page
-shows as a message. Per-user state (the decoded video, the clicked points) is held in
-`gr.State`, so users never see each other's data.
+Everything that is not layout lives in `taptr.apps.demo.uploads` and
+`taptr.apps.demo.handlers`; each callback here converts their `DemoError` (or any
+ValueError) into a `gr.Error`, which the page shows as a message. Per-user state (the
+decoded video, the clicked points) is held in `gr.State`, so users never see each other's
+data.
 """
 
 from __future__ import annotations
@@ -26,8 +27,9 @@ import gradio as gr
 import numpy as np
 
 from taptr.api.predictor import Predictor
-from taptr.demo import handlers
-from taptr.demo.inputs import (
+from taptr.apps.demo import handlers
+from taptr.apps.demo.settings import RUN_MAX_AGE_S, Limits
+from taptr.apps.demo.uploads import (
     QUERY_MODES,
     SAMPLES,
     LoadedVideo,
@@ -39,7 +41,6 @@ from taptr.demo.inputs import (
     mask_from_editor,
     preview_frame,
 )
-from taptr.demo.settings import RUN_MAX_AGE_S, Limits
 
 _BRUSH = gr.Brush(colors=["rgba(255, 40, 90, 0.6)"], color_mode="fixed", default_size=12)
 _MODE_LABELS = {"points": "Clicked points", "region": "Painted region", "grid": "Grid"}

@@ -12,7 +12,7 @@ scanned so that no length prefix reaches past the end of the file (CPython alloc
 declared length before reading it); while unpickling, every allocation an allowed callable
 makes is charged to a budget of a few times the file's size (`BUDGET_FACTOR`), so the
 memory a file can ask for is proportional to the file itself. The file's size is bounded
-by `taptr.limits` (``file_bytes``).
+by `taptr.io.limits` (``file_bytes``).
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ try:  # numpy >= 2 moved the pickle helpers to numpy._core
 except ImportError:  # pragma: no cover - numpy 1.x
     from numpy.core.multiarray import scalar as _numpy_scalar  # type: ignore[no-redef]
 
-from taptr import limits
+from taptr.io import limits
 
 BUDGET_FACTOR = 3
 """Bytes a pickle may allocate per byte of file (protocol 2 copies array data twice)."""

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from taptr.files import atomic_path
+from taptr.io.atomic import atomic_path
 
 CSV_HEADER = "frame,point,x,y,visible"
 

@@ -18,7 +18,7 @@ import torch
 from torch import optim
 
 from taptr.checkpoint import CheckpointError, checkpoint_dict, read_file
-from taptr.files import atomic_path
+from taptr.io.atomic import atomic_path
 from taptr.model.taptr import TAPTR
 from taptr.train.config import TrainConfig
 from taptr.train.ema import ModelEMA

@@ -13,7 +13,7 @@ window by window, so memory is bounded by the window, not the video.
 
 The network itself is reached through a `WindowBackend`: the PyTorch `TAPTR` module (as
 `ModelBackend`, which every function here applies to a `TAPTR` it is given) or the exported
-graphs (`taptr.export.runner.GraphBackend`), so both run exactly these rules.
+graphs (`taptr.export.graph_runner.GraphBackend`), so both run exactly these rules.
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ FrameSource = Callable[[int, int], FrameFeatures]
 """Returns the features of frames first..last (inclusive), memory (B, W_t, S, C).
 
 This is how frames reach the driver: the source encodes them with the backend's encoder
-(`taptr.model.frames.EncodedFrames`, `taptr.export.runner.GraphFrames`) or slices features
+(`taptr.model.frames.EncodedFrames`, `taptr.export.graph_runner.GraphFrames`) or slices features
 encoded beforehand."""
 
 

@@ -13,8 +13,8 @@ import torch
 from torch import Tensor
 
 from taptr.model.frames import EncodedFrames
+from taptr.model.sliding_window import QuerySet, run_windows
 from taptr.model.taptr import TAPTR
-from taptr.model.tracker import QuerySet, run_windows
 
 
 def _check_inputs(

@@ -23,12 +23,12 @@ from pathlib import Path
 import numpy as np
 
 from taptr.api.predictor import Predictor
-from taptr.demo.inputs import DemoError, LoadedVideo
-from taptr.demo.settings import Limits
-from taptr.editing import overlay_region, sample_region_queries
+from taptr.apps.demo.settings import Limits
+from taptr.apps.demo.uploads import DemoError, LoadedVideo
+from taptr.apps.editing import overlay_region, sample_region_queries
+from taptr.io.tracks import save_tracks_csv, save_tracks_npz
+from taptr.io.video import write_video
 from taptr.viz.draw import draw_tracks
-from taptr.viz.export import save_tracks_csv, save_tracks_npz
-from taptr.viz.video_io import write_video
 
 ProgressFn = Callable[[float, str], object]
 """Called with (fraction done in [0, 1], what is happening); Gradio's `gr.Progress` fits."""
@@ -44,7 +44,7 @@ class TrackOutputs:
         overlay: H.264 mp4 of the video with the tracks drawn on it.
         csv: ``tracks.csv``, one ``frame,point,x,y,visible`` row per frame and point.
         npz: ``tracks.npz`` with tracks (T, N, 2), visibility (T, N), queries (N, 3) and
-            metadata (see `taptr.viz.export`).
+            metadata (see `taptr.io.tracks`).
         message: one line for the page.
     """
 
@@ -117,7 +117,7 @@ def track_video(
 
     Args:
         predictor: the tracker.
-        video: the video, as loaded by `taptr.demo.inputs.load_video`.
+        video: the video, as loaded by `taptr.apps.demo.uploads.load_video`.
         queries: (N, 3) float (t, x, y), (x, y) in pixels of the video.
         folder: where the three files are written (created if missing).
         backward: also track the frames before each query frame.
@@ -179,11 +179,11 @@ def edit_video(
     """Pastes an image onto a painted region that follows the video (the paper's editing).
 
     Points sampled inside the region on ``query_frame`` are tracked both ways in time, and
-    each frame warps the image by the region's fitted motion (`taptr.editing`).
+    each frame warps the image by the region's fitted motion (`taptr.apps.editing`).
 
     Args:
         predictor: the tracker.
-        video: the video, as loaded by `taptr.demo.inputs.load_video`.
+        video: the video, as loaded by `taptr.apps.demo.uploads.load_video`.
         mask: (H, W) bool region painted on ``query_frame``.
         image: (h, w, 3) RGB or (h, w, 4) RGBA uint8 image to paste, or (h, w) grey.
         query_frame: the frame t the region was painted on.

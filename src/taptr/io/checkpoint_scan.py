@@ -11,7 +11,7 @@ and checks, for both of PyTorch's formats:
 - no global that can allocate from a declared number is called (`REFUSED_CALLS`);
 - the tensor storages the pickle declares are held by the file (the ``data/*`` records of a
   zip-format file, the bytes after the pickles of a legacy one), and their total is within
-  the ``checkpoint_bytes`` limit of `taptr.limits`.
+  the ``checkpoint_bytes`` limit of `taptr.io.limits`.
 """
 
 from __future__ import annotations
@@ -27,8 +27,8 @@ from typing import Any, BinaryIO, cast
 
 import torch
 
-from taptr import limits
-from taptr.data.safe_pickle import PickleBombError, scan_opcodes
+from taptr.io import limits
+from taptr.io.safe_pickle import PickleBombError, scan_opcodes
 
 REFUSED_CALLS = {
     "torch._utils._rebuild_qtensor": "a quantized tensor (allocated from its declared size)",
@@ -236,7 +236,7 @@ def scan_checkpoint(path: str | os.PathLike[str]) -> Scan:
     """Checks what a checkpoint file declares against what it holds and the size limit.
 
     Raises:
-        taptr.limits.LimitError: the file or its tensors exceed ``checkpoint_bytes``.
+        taptr.io.limits.LimitError: the file or its tensors exceed ``checkpoint_bytes``.
         ScanError: it declares data it does not hold, calls an allocating global, or is
             not a PyTorch file (the message does not name the file; the caller adds it).
     """

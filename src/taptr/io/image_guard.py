@@ -3,7 +3,7 @@
 A few kilobytes of PNG can declare a 100,000 × 100,000 image. Every reader of png/jpg
 frames (image folders, Kubric frames, TAP-Vid's encoded frames) opens images through
 `open_image`, which reads the header only and refuses images above the ``image_pixels``
-limit of `taptr.limits` before anything is decoded. PIL's own decompression-bomb guard is
+limit of `taptr.io.limits` before anything is decoded. PIL's own decompression-bomb guard is
 turned into the same one-line error.
 """
 
@@ -19,7 +19,7 @@ from collections.abc import Iterator
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
-from taptr import limits
+from taptr.io import limits
 
 _PIL_ERRORS = (UnidentifiedImageError, OSError, ValueError, SyntaxError, TypeError, EOFError)
 
@@ -34,7 +34,7 @@ def open_image(source: str | os.PathLike[str] | bytes, label: str) -> Iterator[I
 
     Raises:
         ValueError: PIL cannot read the header (the message says "not a readable image"),
-            or the image declares more pixels than the limit allows (`taptr.limits.LimitError`).
+            or the image declares more pixels than the limit allows (`taptr.io.limits.LimitError`).
     """
     allowed = limits.limit("image_pixels")
     if Image.MAX_IMAGE_PIXELS is not None and allowed > Image.MAX_IMAGE_PIXELS:

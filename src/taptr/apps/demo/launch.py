@@ -22,8 +22,8 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from taptr.demo.settings import DEFAULT_HOST, DEFAULT_PORT, MAX_UPLOAD, Limits
-from taptr.files import remove_stale_temporaries
+from taptr.apps.demo.settings import DEFAULT_HOST, DEFAULT_PORT, MAX_UPLOAD, Limits
+from taptr.io.atomic import remove_stale_temporaries
 
 if TYPE_CHECKING:
     from taptr.api.predictor import Predictor
@@ -97,7 +97,7 @@ def serve(
     Raises:
         OSError: the port is taken.
     """
-    from taptr.demo.app import build_app
+    from taptr.apps.demo.app import build_app
 
     limits = limits or Limits()
     demo = build_app(predictor, workspace=workspace, limits=limits, model_name=model_name)

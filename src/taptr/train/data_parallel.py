@@ -19,7 +19,7 @@ import torch.distributed as dist
 from torch import nn
 from torch.nn.parallel import DistributedDataParallel
 
-from taptr.distributed import join_process_group, launched_world_size
+from taptr.process_group import join_process_group, launched_world_size
 
 
 @dataclass(frozen=True)

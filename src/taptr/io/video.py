@@ -8,7 +8,7 @@ FFmpeg, because OpenCV's pip wheel cannot encode H.264.
 
 Problems with the input are reported as one-line errors that name the file:
 `FileNotFoundError` when it is missing and `ValueError` when it is unsupported, unreadable,
-has no frames, or would exceed a limit of `taptr.limits` (``video_bytes`` for a whole video,
+has no frames, or would exceed a limit of `taptr.io.limits` (``video_bytes`` for a whole video,
 ``image_pixels`` for one frame; both checked from headers before decoding). A file that
 decodes to fewer or more frames than its container states gives a warning with both
 numbers.
@@ -29,9 +29,9 @@ import av
 import cv2
 import numpy as np
 
-from taptr import limits
-from taptr.files import atomic_path
-from taptr.image_guard import image_size
+from taptr.io import limits
+from taptr.io.atomic import atomic_path
+from taptr.io.image_guard import image_size
 
 VIDEO_SUFFIXES = (".mp4", ".webm", ".avi", ".gif", ".mov", ".mkv")
 """File suffixes read through PyAV."""
@@ -134,7 +134,7 @@ def read_video(
 
     Raises:
         ValueError: as `iter_frames`, and when the decoded frames would exceed the
-            ``video_bytes`` limit of `taptr.limits` (checked from the header before decoding
+            ``video_bytes`` limit of `taptr.io.limits` (checked from the header before decoding
             when the container states its frame count, and while decoding in any case).
     """
     frames = iter_frames(path, stride=stride, max_frames=max_frames)

@@ -11,7 +11,7 @@ import os
 from collections.abc import Iterator
 from typing import Any, NamedTuple
 
-from taptr.distributed import gather_objects, join_process_group, launched_world_size
+from taptr.process_group import gather_objects, join_process_group, launched_world_size
 
 
 class Shard(NamedTuple):

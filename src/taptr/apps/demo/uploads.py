@@ -21,11 +21,11 @@ import cv2
 import numpy as np
 
 from taptr.api.inputs import grid_queries
+from taptr.apps.demo.settings import Limits
+from taptr.apps.editing import sample_region_queries
 from taptr.data.sample_video import make_sample_clip
-from taptr.demo.settings import Limits
-from taptr.editing import sample_region_queries
+from taptr.io.video import read_video, video_info, write_video
 from taptr.viz.draw import default_radius, draw_frame, point_colors
-from taptr.viz.video_io import read_video, video_info, write_video
 
 Point = tuple[int, float, float]
 """A clicked query point (t, x, y): frame index and pixel position, pixel centres at integers."""

@@ -2,9 +2,9 @@
 
 The graphs hold the network; the sliding-window rules are not repeated here.
 `GraphBackend` puts a `Steps` (the three graphs, numpy in and out, `taptr.export.backends`)
-behind `taptr.model.tracker.WindowBackend`, converting numpy ↔ torch at the boundary, and
+behind `taptr.model.sliding_window.WindowBackend`, converting numpy ↔ torch at the boundary, and
 `GraphFrames` encodes frames through the encoder graph; `track_points` hands both to
-`taptr.model.tracker.run_windows`, so exported graphs and PyTorch model decode the same
+`taptr.model.sliding_window.run_windows`, so exported graphs and PyTorch model decode the same
 windows by the same code. The rules, for porting the loop to another language, are
 listed in ``docs/EXPORT.md``.
 
@@ -21,8 +21,8 @@ import torch
 from torch import Tensor
 
 from taptr.export.manifest import ExportManifest
+from taptr.model.sliding_window import QuerySet, WindowDecoding, run_windows
 from taptr.model.taptr import FrameFeatures
-from taptr.model.tracker import QuerySet, WindowDecoding, run_windows
 
 
 class Steps(Protocol):
@@ -117,7 +117,7 @@ class GraphBackend:
         tracking: Tensor,
         update: Tensor,
     ) -> WindowDecoding:
-        """The ``decode_window`` graph; shapes as `taptr.model.tracker.WindowBackend`, B = 1."""
+        """The ``decode_window`` graph; shapes as in `taptr.model.sliding_window.WindowBackend`."""
         inputs = (memory, content, positions, initial, tracking, update)
         window_positions, visibility_logits, next_content = (
             _to_torch(output) for output in self.steps.decode(*map(_to_numpy, inputs))
