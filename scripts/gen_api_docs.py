@@ -41,11 +41,12 @@ SECTIONS = {
         "taptr.io.limits",
         "taptr.model.build",
         "taptr.model.execution",
-        "taptr.official.forward",
+        "taptr.official.model_forward",
     ],
     "Coordinates": ["taptr.geometry"],
     "Video files, drawing and track files": [
         "taptr.io.video",
+        "taptr.io.reverse_frames",
         "taptr.viz.draw",
         "taptr.io.tracks",
     ],

@@ -10,8 +10,8 @@ import taptr
 from taptr.api.context import ContextPoints, draw_context, padding_bounds, with_context
 from taptr.api.online import OnlineTracker
 from taptr.config import ModelConfig, get_config
+from taptr.eval.official_protocol import official_padding
 from taptr.model.sliding_window import QuerySet
-from taptr.official.evaluation import official_padding
 from taptr.train.config import from_dict as train_config_from_dict
 
 
@@ -110,7 +110,7 @@ def test_context_points_change_the_tracks_but_are_never_returned(model):
 
 def test_context_equals_the_model_run_on_the_padded_set(model):
     """The predictor's real points are exactly the first rows of a run on the padded set."""
-    from taptr.official.forward import official_forward
+    from taptr.official.model_forward import official_forward
 
     predictor = taptr.Predictor(model, device="cpu", context_points=16, dtype=torch.float64)
     video = _video()

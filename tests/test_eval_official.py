@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import torch
 
+from taptr.eval.official_protocol import OfficialTAPTR, official_padding
 from taptr.eval.protocols import OfficialProtocol, StandardProtocol
-from taptr.eval.queries import sample_queries
-from taptr.official.evaluation import OfficialTAPTR, official_padding
+from taptr.eval.query_sampling import sample_queries
 from tests.test_tapvid_fabricated import make_clip
 
 

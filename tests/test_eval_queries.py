@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from taptr.eval.protocols import StandardProtocol, evaluate_video
-from taptr.eval.queries import sample_queries
+from taptr.eval.query_sampling import sample_queries
 from taptr.eval.trackers import run_tracker, track_both_ways
 from tests.test_tapvid_fabricated import make_clip
 

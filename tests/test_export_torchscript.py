@@ -15,8 +15,8 @@ from taptr.export.backends import TorchScriptSteps, load_steps
 from taptr.export.graph_runner import track_points
 from taptr.export.graphs import _wrappers, export_model, prepare_for_export
 from taptr.export.manifest import GRAPHS, ExportManifest
+from taptr.export.track_video import track_video
 from taptr.export.verify import sample_frames, torch_tracks
-from taptr.export.video import track_video
 from tests.helpers import decode_window_inputs
 from tests.test_export_runner import randomised
 

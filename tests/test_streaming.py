@@ -7,8 +7,8 @@ import pytest
 import torch
 
 import taptr
-from taptr.api.streaming import draw_final, track_frames
-from taptr.viz.draw import draw_tracks
+from taptr.api.streaming import draw_final, track_frames, track_frames_both_ways
+from taptr.viz.draw import draw_tracks, point_colors
 
 QUERIES = np.array([[0, 10, 20], [3, 55, 39], [6, 5, 5]], np.float32)
 
@@ -39,6 +39,37 @@ def test_streamed_tracks_and_overlay_equal_the_in_memory_ones(model, frames, con
     reference = draw_tracks(video, tracks, visibility, query_frames=QUERIES[:, 0].astype(int))
     np.testing.assert_array_equal(overlay, reference)
     model.float()
+
+
+@pytest.mark.parametrize(("frames", "context", "chunk"), [(21, 0, 4), (13, 10, 3)])
+def test_streamed_both_ways_equals_the_in_memory_backward_tracking(model, frames, context, chunk):
+    predictor = taptr.Predictor(model, device="cpu", dtype=torch.float64, context_points=context)
+    video = _video(frames)
+    expected = predictor.track(video, QUERIES, backward=True)
+    reversed_counts = []
+    batches = list(
+        track_frames_both_ways(
+            predictor,
+            lambda: iter(video),
+            lambda: iter(video[::-1]),
+            QUERIES,
+            num_frames=frames,
+            chunk=chunk,
+            on_reversed=reversed_counts.append,
+        )
+    )
+    assert sum(reversed_counts) == frames
+    tracks = np.concatenate([b.tracks for b in batches])
+    visibility = np.concatenate([b.visibility for b in batches])
+    logits = np.concatenate([b.visibility_logits for b in batches])
+    np.testing.assert_array_equal(np.concatenate([b.frames for b in batches]), video)
+    np.testing.assert_allclose(tracks, expected.tracks[0].numpy(), atol=1e-6, rtol=0)
+    np.testing.assert_array_equal(visibility, expected.visibility[0].numpy())
+    np.testing.assert_allclose(logits, expected.visibility_logits[0].numpy(), atol=1e-6, rtol=0)
+    assert np.isfinite(logits[:3, 1]).all()  # tracked before its query frame, not hidden
+    overlay = np.stack(list(draw_final(iter(batches), QUERIES, from_query_frames=False)))
+    colors = point_colors(QUERIES[:, 1:])
+    np.testing.assert_array_equal(overlay, draw_tracks(video, tracks, visibility, colors=colors))
 
 
 def test_only_a_window_of_frames_is_held(model):

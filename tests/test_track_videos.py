@@ -125,7 +125,30 @@ def test_a_truncated_video_is_tracked_in_memory_after_a_warning(checkpoint, tmp_
     assert load_tracks_npz(tmp_path / "o" / "tracks.npz").tracks.shape == (5, 4, 2)
 
 
-def test_edit_from_frame_0_streams_and_equals_the_in_memory_edit(clips, checkpoint, tmp_path):
+def test_backward_tracking_streams_and_equals_the_predictor(
+    clips, checkpoint, tmp_path, monkeypatch
+):
+    import taptr.io.video as video_io
+
+    def no_whole_video(*args, **kwargs):
+        raise AssertionError("--backward read the whole video into memory")
+
+    monkeypatch.setattr(video_io, "read_video", no_whole_video)
+    out = tmp_path / "both"
+    args = ["track", str(clips / "a.mp4"), "--points", QUERIES, "--checkpoint", str(checkpoint)]
+    assert main([*args, "--backward", "--out", str(out), "--trajectories"]) == 0
+    monkeypatch.undo()
+    saved = load_tracks_npz(out / "tracks.npz")
+    predictor = taptr.Predictor.from_pretrained(checkpoint, device="cpu")
+    expected = predictor.track(read_video(clips / "a.mp4"), saved.queries, backward=True)
+    np.testing.assert_allclose(saved.tracks, expected.tracks[0].numpy(), atol=5e-3, rtol=0)
+    np.testing.assert_array_equal(saved.visibility, expected.visibility[0].numpy())
+    assert saved.metadata["backward"] is True
+    assert len(read_video(out / "overlay.mp4")) == 14
+
+
+@pytest.mark.parametrize("query_frame", [0, 6])
+def test_edit_streams_and_equals_the_in_memory_edit(clips, checkpoint, tmp_path, query_frame):
     import argparse
 
     from taptr.apps.editing import overlay_region, sample_region_queries
@@ -136,15 +159,16 @@ def test_edit_from_frame_0_streams_and_equals_the_in_memory_edit(clips, checkpoi
     overlay = np.zeros((8, 8, 3), np.uint8)
     overlay[..., 2] = 255
     video_path = clips / "a.mp4"
-    queries = sample_region_queries(mask, 0, stride=3)
+    queries = sample_region_queries(mask, query_frame, stride=3)
     predictor = taptr.Predictor.from_pretrained(checkpoint, device="cpu")
     args = argparse.Namespace(video=str(video_path), max_frames=None, opacity=0.8)
     streamed = np.stack(list(_edited_frames(args, predictor, queries, mask, overlay, 14)))
     video = read_video(video_path)
     result = predictor.track(video, queries, backward=True)
     tracks, visibility = result.tracks[0].numpy(), result.visibility[0].numpy()
-    expected = overlay_region(video, overlay, mask, tracks, visibility, 0, opacity=0.8)
+    expected = overlay_region(video, overlay, mask, tracks, visibility, query_frame, opacity=0.8)
     assert streamed.shape == expected.shape == (14, 48, 64, 3)
     difference = np.abs(streamed.astype(int) - expected.astype(int))
     assert difference.mean() < 0.05 and np.percentile(difference, 99) <= 2  # float32 noise
-    assert np.abs(streamed[0].astype(int) - video[0].astype(int)).max() > 100  # pasted
+    pasted = streamed[query_frame].astype(int) - video[query_frame].astype(int)
+    assert np.abs(pasted).max() > 100

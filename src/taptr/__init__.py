@@ -15,7 +15,7 @@ _EXPORTS = {
     "from_pretrained": "taptr.hub",
     "load_checkpoint": "taptr.checkpoint",
     "save_checkpoint": "taptr.checkpoint",
-    "official_forward": "taptr.official.forward",
+    "official_forward": "taptr.official.model_forward",
     "ModelConfig": "taptr.config",
     "BackboneConfig": "taptr.config",
     "get_config": "taptr.config",

@@ -14,12 +14,14 @@ equal `Predictor.track` on the whole video in memory (see `taptr.api.online`).
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from itertools import islice
 from typing import NamedTuple
 
 import numpy as np
+import torch
 
+from taptr.api.backward import needs_backward, query_frames, reversed_queries
 from taptr.api.online import OnlineTracker, StreamUpdate
 from taptr.api.predictor import Predictor
 
@@ -83,6 +85,79 @@ def track_frames(
     yield from _final(online.finish(state), held)
 
 
+def track_frames_both_ways(
+    predictor: Predictor,
+    read_forward: Callable[[], Iterable[np.ndarray]],
+    read_reversed: Callable[[], Iterable[np.ndarray]],
+    queries: np.ndarray,
+    *,
+    num_frames: int,
+    chunk: int = 4,
+    on_reversed: Callable[[int], object] | None = None,
+) -> Iterator[FinalFrames]:
+    """Tracks before and after each query frame, reading the video twice, never holding it.
+
+    The first read goes backwards (``read_reversed``: frame T − 1 first) with every query at
+    frame T − 1 − t and keeps only the tracks of the frames before each query frame; the
+    second read goes forwards and yields each frame with those tracks before its points'
+    query frames and the forward tracks from them on: `Predictor.track` with
+    ``backward=True`` (`taptr.api.backward`), frame by frame.
+
+    Args:
+        predictor: the model and its settings.
+        read_forward: opens the frames in order, (H, W, 3) uint8 RGB.
+        read_reversed: opens the same frames last to first.
+        queries: (N, 3) (t, x, y) pixel queries.
+        num_frames: T, the video's length (required: it places the reversed queries).
+        chunk: frames encoded at a time.
+        on_reversed: called with the number of frames of each reversed batch (progress).
+
+    Yields:
+        `FinalFrames` in forward order, covering every frame once.
+    """
+    query = torch.as_tensor(np.asarray(queries, dtype=np.float64))
+    if not needs_backward(query):
+        yield from track_frames(
+            predictor, read_forward(), queries, num_frames=num_frames, chunk=chunk
+        )
+        return
+    starts = query_frames(query).numpy()
+    backward = None
+    flipped = reversed_queries(query, num_frames).numpy()
+    for batch in track_frames(
+        predictor, read_reversed(), flipped, num_frames=num_frames, chunk=chunk
+    ):
+        if backward is None:  # (T, N, ...) of the reversed pass, in forward frame order
+            backward = _empty_like(batch, num_frames)
+        rows = num_frames - 1 - np.arange(batch.first_frame, batch.first_frame + len(batch.frames))
+        for name in ("tracks", "visibility", "visibility_logits"):
+            backward[name][rows] = getattr(batch, name)
+        if on_reversed is not None:
+            on_reversed(len(batch.frames))
+    assert backward is not None
+    for batch in track_frames(
+        predictor, read_forward(), queries, num_frames=num_frames, chunk=chunk
+    ):
+        rows = slice(batch.first_frame, batch.first_frame + len(batch.frames))
+        before = np.arange(num_frames)[rows, None] < starts[None]  # (F, N)
+        yield batch._replace(
+            tracks=np.where(before[..., None], backward["tracks"][rows], batch.tracks),
+            visibility=np.where(before, backward["visibility"][rows], batch.visibility),
+            visibility_logits=np.where(
+                before, backward["visibility_logits"][rows], batch.visibility_logits
+            ),
+        )
+
+
+def _empty_like(batch: FinalFrames, num_frames: int) -> dict[str, np.ndarray]:
+    """Zeroed (T, ...) arrays shaped and typed like the per-frame results of ``batch``."""
+    return {
+        name: np.zeros((num_frames, *value.shape[1:]), value.dtype)
+        for name in ("tracks", "visibility", "visibility_logits")
+        for value in [getattr(batch, name)]
+    }
+
+
 def _final(update: StreamUpdate, held: deque[np.ndarray]) -> Iterator[FinalFrames]:
     """Pairs an update with its frames, dropping them from ``held``."""
     count = update.tracks.shape[0]
@@ -104,14 +179,17 @@ def draw_final(
     *,
     trail_length: int = 12,
     radius: float | None = None,
+    from_query_frames: bool = True,
 ) -> Iterator[np.ndarray]:
     """Overlay frames, one by one, as `taptr.viz.draw.draw_tracks` draws a whole video.
 
     Args:
-        batches: `track_frames` output.
+        batches: `track_frames` (or `track_frames_both_ways`) output.
         queries: (N, 3) (t, x, y) the queries (colours come from their positions).
         trail_length: past frames each trail covers.
         radius: point radius in pixels; None scales it with the image.
+        from_query_frames: draw each point from its query frame on (forward tracking);
+            False draws it on every frame (tracked both ways).
 
     Yields:
         (H, W, 3) uint8 RGB frames with the points and their trails.
@@ -119,7 +197,7 @@ def draw_final(
     from taptr.viz.draw import draw_frame, point_colors
 
     colors = point_colors(queries[:, 1:])
-    starts = queries[:, 0].astype(np.int64)
+    starts = queries[:, 0].astype(np.int64) if from_query_frames else np.zeros(len(queries), int)
     tracks: deque[np.ndarray] = deque(maxlen=trail_length + 1)
     visible: deque[np.ndarray] = deque(maxlen=trail_length + 1)
     indices: deque[int] = deque(maxlen=trail_length + 1)

@@ -11,7 +11,11 @@ import importlib.util
 import ipaddress
 import sys
 
-from taptr.cli.track import add_model_arguments, check_model_arguments, load_predictor
+from taptr.cli.model_options import (
+    add_model_arguments,
+    check_model_arguments,
+    load_predictor,
+)
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:

@@ -7,8 +7,12 @@ import logging
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from taptr.cli.model_options import (
+    add_model_arguments,
+    check_model_arguments,
+    load_predictor,
+)
 from taptr.cli.options import check_at_least, check_output_file
-from taptr.cli.track import add_model_arguments, check_model_arguments, load_predictor
 
 if TYPE_CHECKING:
     from collections.abc import Iterator
@@ -27,9 +31,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="track a painted region and paste an image onto it in every frame",
         description="Samples points densely inside --mask on --query-frame, tracks them forwards "
         "and backwards, fits the region's motion per frame (RANSAC, outliers dropped) and warps "
-        "--overlay onto it, hidden where the region is occluded. With --query-frame 0 the video "
-        "is decoded, tracked, edited and encoded frame by frame (memory flat in its length); "
-        "otherwise it is read into memory first.",
+        "--overlay onto it, hidden where the region is occluded. The video is decoded, tracked, "
+        "edited and encoded frame by frame (memory flat in its length); with a later "
+        "--query-frame the file is first read backwards to track the frames before it.",
     )
     parser.add_argument("video", help="video file or folder of images")
     parser.add_argument(
@@ -76,9 +80,13 @@ def run(args: argparse.Namespace) -> int:
     )
     queries = sample_region_queries(mask, args.query_frame, stride=args.stride)
     check_num_points(len(queries), f"--mask {args.mask} with --stride {args.stride}")
+    if info.num_frames is not None:
+        declared = min(info.num_frames, args.max_frames or info.num_frames)
+        if not args.query_frame < declared:
+            raise ValueError(f"--query-frame {args.query_frame} outside [0, {declared})")
     predictor = load_predictor(args)
-    if args.query_frame == 0 and info.num_frames is not None:
-        # nothing lies before frame 0: tracked forwards only, frame by frame
+    if info.num_frames is not None:
+        # frame by frame; frames before a later query frame come from a backward read
         try:
             edited = _edited_frames(args, predictor, queries, mask, overlay, info.num_frames)
             path = write_video(args.out, edited, info.fps or 24.0)
@@ -113,18 +121,31 @@ def _edited_frames(
     overlay: np.ndarray,
     declared: int,
 ) -> Iterator[np.ndarray]:
-    """Edited frames, decoded, tracked and edited one window at a time (memory flat in T)."""
+    """Edited frames, decoded, tracked and edited one window at a time (memory flat in T).
+
+    Points given on a later frame are tracked backwards first, on a second, reversed read
+    of the file (`taptr.api.streaming.track_frames_both_ways`).
+    """
     from tqdm.auto import tqdm
 
-    from taptr.api.streaming import track_frames
+    from taptr.api.streaming import track_frames_both_ways
     from taptr.apps.editing import apply_overlay, prepare_overlay
+    from taptr.io.reverse_frames import iter_frames_reversed
     from taptr.io.video import iter_frames
 
     num_frames = min(declared, args.max_frames or declared)
     prepared = prepare_overlay(overlay, mask, queries[:, 1:])
-    frames = iter_frames(args.video, max_frames=args.max_frames)
-    with tqdm(total=num_frames, desc="editing", unit="frame") as bar:
-        for batch in track_frames(predictor, frames, queries, num_frames=num_frames):
+    passes = 2 if queries[:, 0].max() > 0 else 1
+    with tqdm(total=passes * num_frames, desc="editing", unit="frame") as bar:
+        batches = track_frames_both_ways(
+            predictor,
+            lambda: iter_frames(args.video, max_frames=args.max_frames),
+            lambda: iter_frames_reversed(args.video, max_frames=args.max_frames),
+            queries,
+            num_frames=num_frames,
+            on_reversed=bar.update,
+        )
+        for batch in batches:
             for frame, positions, visible in zip(
                 batch.frames, batch.tracks, batch.visibility, strict=True
             ):

@@ -6,73 +6,29 @@ import argparse
 import json
 import logging
 import os
+from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from taptr.cli.model_options import (
+    add_model_arguments,
+    check_model_arguments,
+    load_predictor,
+)
 from taptr.cli.options import (
-    MAX_INPUT_SIDE,
-    MIN_INPUT_SIDE,
-    add_device_argument,
     check_at_least,
-    check_device,
-    check_input_size,
     check_output_folder,
 )
 from taptr.cli.points import build_queries, check_listed_points, listed_points
 
 if TYPE_CHECKING:
     from taptr.api.predictor import Predictor
+    from taptr.api.streaming import FinalFrames
     from taptr.io.video import VideoInfo
 
 logger = logging.getLogger(__name__)
-
-
-def add_model_arguments(parser: argparse.ArgumentParser, max_frames: int | None = None) -> None:
-    """Options shared by the commands that run a model (``max_frames``: its default)."""
-    parser.add_argument(
-        "--checkpoint",
-        default=None,
-        help="checkpoint file or model name (default: the paper's weights taptrv2-official "
-        "from the Hugging Face cache or downloaded once; without network, the bundled "
-        "taptr-small-synthetic, with a warning)",
-    )
-    add_device_argument(parser)
-    parser.add_argument(
-        "--context-points",
-        type=int,
-        default=None,
-        metavar="K",
-        help="pad the queries with seeded context points up to K points, as the official "
-        "demo does; they are never written out; 0 turns it off (default: the model's, 800 "
-        "for the paper's weights)",
-    )
-    parser.add_argument(
-        "--input-size",
-        type=int,
-        nargs=2,
-        metavar=("HEIGHT", "WIDTH"),
-        default=None,
-        help="resolution the model sees, each side in "
-        f"[{MIN_INPUT_SIDE}, {MAX_INPUT_SIDE}] (default: the model's, 512 512 for the paper "
-        "model)",
-    )
-    parser.add_argument(
-        "--max-frames",
-        type=int,
-        default=max_frames,
-        help=f"read at most this many frames (default: {max_frames or 'all'})",
-    )
-
-
-def check_model_arguments(args: argparse.Namespace) -> None:
-    """Checks the options of `add_model_arguments` before any file is read."""
-    check_device(args.device)
-    check_input_size(args.input_size)
-    if args.context_points is not None:
-        check_at_least(args.context_points, 0, "--context-points")
-    check_at_least(args.max_frames, 1, "--max-frames")
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -84,8 +40,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "a grid, or a region mask, and writes tracks.npz, tracks.csv and overlay.mp4 to --out "
         "(replacing an earlier run's files together, or not at all if interrupted). Frames are "
         "decoded, tracked, drawn and encoded as they go, so memory does not grow with the "
-        "video (--backward holds the video in memory). Under torchrun, the videos are shared "
-        "out among the processes. One run tracks at most 100,000 points; the environment "
+        "video (--backward reads the file twice, backwards first). Under torchrun, the videos "
+        "are shared out among the processes. One run tracks at most 100,000 points; the environment "
         "variable TAPTR_MAX_POINTS raises that.",
     )
     parser.add_argument(
@@ -142,16 +98,6 @@ def check_track_arguments(args: argparse.Namespace) -> None:
     if args.grid is not None:
         check_at_least(args.grid, 1, "--grid")
         check_num_points(args.grid * args.grid, f"--grid {args.grid}")
-
-
-def load_predictor(args: argparse.Namespace) -> Predictor:
-    """The predictor the model arguments describe."""
-    from taptr.api.predictor import Predictor
-
-    size = tuple(args.input_size) if args.input_size else None
-    return Predictor.from_pretrained(
-        args.checkpoint, device=args.device, input_size=size, context_points=args.context_points
-    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -233,7 +179,7 @@ def track_video(
     declared = info.num_frames
     if declared is not None and args.max_frames is not None:
         declared = min(declared, args.max_frames)
-    if declared is not None and not args.backward:
+    if declared is not None:
         queries = (
             listed if listed is not None else build_queries(args, declared, info.height, info.width)
         )
@@ -253,12 +199,16 @@ def _track_streaming(
     info: VideoInfo,
     num_frames: int,
 ) -> tuple[int, int]:
-    """Decodes, tracks, draws and encodes frame by frame; holds about one window of frames."""
+    """Decodes, tracks, draws and encodes frame by frame; holds about one window of frames.
+
+    With ``--backward`` the file is read twice, backwards first (`taptr.io.reverse_frames`).
+    """
     from tqdm.auto import tqdm
 
     from taptr.api.inputs import query_tensor
-    from taptr.api.streaming import draw_final, track_frames
+    from taptr.api.streaming import draw_final, track_frames, track_frames_both_ways
     from taptr.io.atomic import result_folder
+    from taptr.io.reverse_frames import iter_frames_reversed
     from taptr.io.video import iter_frames, write_video
 
     kept: list[tuple[np.ndarray, np.ndarray]] = []
@@ -266,10 +216,25 @@ def _track_streaming(
     # checked before the first frame is decoded, with the predictor's own messages
     queries = query_tensor(queries, 1, num_frames, info.height, info.width)[0].numpy()
 
+    def read() -> Iterator[np.ndarray]:
+        return iter_frames(video, max_frames=args.max_frames)
+
+    def batches(bar: tqdm) -> Iterator[FinalFrames]:
+        if not args.backward:
+            return track_frames(predictor, read(), queries, num_frames=num_frames)
+        return track_frames_both_ways(
+            predictor,
+            read,
+            lambda: iter_frames_reversed(video, max_frames=args.max_frames),
+            queries,
+            num_frames=num_frames,
+            on_reversed=bar.update,
+        )
+
     def tracked():
-        frames = iter_frames(video, max_frames=args.max_frames)
-        with tqdm(total=num_frames, desc="tracking", unit="frame") as bar:
-            for batch in track_frames(predictor, frames, queries, num_frames=num_frames):
+        total = num_frames * (2 if args.backward else 1)
+        with tqdm(total=total, desc="tracking", unit="frame") as bar:
+            for batch in batches(bar):
                 # tracks only, and a copy of the newest frame: a view would keep the
                 # whole batch of frames alive
                 kept.append((batch.tracks, batch.visibility))
@@ -278,12 +243,14 @@ def _track_streaming(
                 yield batch
 
     with result_folder(out, OUTPUT_NAMES) as staging:
-        write_video(staging / "overlay.mp4", draw_final(tracked(), queries), info.fps or 24.0)
+        overlay = draw_final(tracked(), queries, from_query_frames=not args.backward)
+        write_video(staging / "overlay.mp4", overlay, info.fps or 24.0)
         tracks = np.concatenate([part[0] for part in kept])
         visibility = np.concatenate([part[1] for part in kept])
         _write_tracks(args, predictor, video, staging, tracks, visibility, queries, info)
         if args.trajectories:
-            _write_trajectories(staging, last_frame[0], tracks, visibility, queries[:, 0])
+            starts = None if args.backward else queries[:, 0].astype(np.int64)
+            _write_trajectories(staging, last_frame[0], tracks, visibility, starts)
     _print_done(out, len(queries), len(tracks))
     return len(tracks), len(queries)
 
@@ -299,7 +266,7 @@ def _track_in_memory(
     """Reads the whole video first (needed by --backward and by unknown frame counts)."""
     from taptr.io.atomic import result_folder
     from taptr.io.video import read_video, write_video
-    from taptr.viz.draw import draw_tracks
+    from taptr.viz.draw import draw_tracks, point_colors
 
     frames = read_video(video, max_frames=args.max_frames)
     queries = listed if listed is not None else build_queries(args, *frames.shape[:3])
@@ -309,7 +276,9 @@ def _track_in_memory(
     query_frames = None if args.backward else queries[:, 0].astype(np.int64)
     with result_folder(out, OUTPUT_NAMES) as staging:
         _write_tracks(args, predictor, video, staging, tracks, visibility, queries, info)
-        overlay = draw_tracks(frames, tracks, visibility, query_frames=query_frames)
+        # coloured by where each point was given, as the streamed overlay is
+        colors = point_colors(queries[:, 1:])
+        overlay = draw_tracks(frames, tracks, visibility, query_frames=query_frames, colors=colors)
         write_video(staging / "overlay.mp4", overlay, info.fps or 24.0)
         if args.trajectories:
             _write_trajectories(staging, frames[-1], tracks, visibility, query_frames)

@@ -36,7 +36,7 @@ from taptr.data.tapvid import PendingVideo
 from taptr.eval.metrics import CALIBRATION_METRICS, tapvid_metrics
 from taptr.eval.predictor_tracker import PredictorTracker
 from taptr.eval.protocols import StandardProtocol
-from taptr.eval.queries import sample_queries
+from taptr.eval.query_sampling import sample_queries
 from taptr.io.atomic import atomic_path
 from taptr.types import TrackingSample
 

@@ -22,12 +22,12 @@ from PIL import Image
 
 from taptr.data.tapvid import pixels_to_raster, raster_to_pixels
 from taptr.eval.metrics import tapvid_metrics
-from taptr.eval.queries import QueryPoints, sample_queries
+from taptr.eval.query_sampling import QueryPoints, sample_queries
 from taptr.eval.trackers import Tracker, run_tracker
 from taptr.types import TrackingSample
 
 if TYPE_CHECKING:  # the official protocol needs torch; the standard one does not
-    from taptr.official.evaluation import OfficialTAPTR
+    from taptr.eval.official_protocol import OfficialTAPTR
 
 FRAME_SIZE = 256
 """Side of the square frame the benchmark is scored in."""

@@ -99,7 +99,7 @@ def build_protocol(config: EvalConfig, device: str) -> EvalProtocol:
     """The protocol and tracker ``config`` names, with the model (if any) on ``device``."""
     if config.protocol == "official":
         from taptr.checkpoint import load_checkpoint
-        from taptr.official.evaluation import OfficialTAPTR
+        from taptr.eval.official_protocol import OfficialTAPTR
 
         assert config.checkpoint is not None  # checked by EvalConfig
         return OfficialProtocol(OfficialTAPTR(load_checkpoint(config.checkpoint), device=device))

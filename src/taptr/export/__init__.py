@@ -5,7 +5,7 @@
 - `track_points(steps, manifest, frames, ...)` tracks with them through the model's own
   sliding-window driver (`taptr.export.graph_runner`, whose `GraphBackend` adapts the graphs to
   `taptr.model.sliding_window`), with `load_steps(directory)` for the graphs, and `track_video`
-  the same in input pixels with (t, x, y) queries (`taptr.export.video`);
+  the same in input pixels with (t, x, y) queries (`taptr.export.track_video`);
 - `compare(model, directory)` checks an export against the model (`taptr.export.verify`);
 - `compile_model(model)` is the optional ``torch.compile`` path for PyTorch inference.
 
@@ -24,7 +24,7 @@ _EXPORTS = {
     "track_points": "taptr.export.graph_runner",
     "TrackArrays": "taptr.export.graph_runner",
     "GraphBackend": "taptr.export.graph_runner",
-    "track_video": "taptr.export.video",
+    "track_video": "taptr.export.track_video",
     "load_steps": "taptr.export.backends",
     "OnnxSteps": "taptr.export.backends",
     "TorchScriptSteps": "taptr.export.backends",

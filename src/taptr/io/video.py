@@ -326,11 +326,16 @@ def _decode(
         # Skipped frames must still be decoded (later frames depend on them), but are never
         # converted to RGB.
         for frame in islice(container.decode(stream), 0, None, stride):
-            # The display matrix gives the counter-clockwise turn that shows the frame upright.
-            upright = np.rot90(frame.to_ndarray(format="rgb24"), k=round(frame.rotation / 90))
-            yield np.ascontiguousarray(upright)
+            yield rgb(frame)
     except av.error.FFmpegError as error:
         raise ValueError(f"cannot decode video {path}: {_reason(error)}") from error
+
+
+def rgb(frame: av.VideoFrame) -> np.ndarray:
+    """A decoded frame as (H, W, 3) uint8 RGB, turned upright."""
+    # The display matrix gives the counter-clockwise turn that shows the frame upright.
+    upright = np.rot90(frame.to_ndarray(format="rgb24"), k=round(frame.rotation / 90))
+    return np.ascontiguousarray(upright)
 
 
 def _reason(error: av.error.FFmpegError) -> str:

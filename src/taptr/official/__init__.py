@@ -1,6 +1,7 @@
 """Everything that speaks the authors' formats.
 
-Their checkpoint keys (`convert`), their model-level forward conventions (`forward`) and
-their TAP-Vid evaluation recipe (`evaluation`), for equivalence checks against the
-official TAPTRv2 code.
+Their checkpoint keys (`convert`) and their model-level forward conventions
+(`model_forward`), for loading the released weights and for equivalence checks against the
+official TAPTRv2 code. Their TAP-Vid evaluation recipe is a protocol of the evaluation
+(`taptr.eval.official_protocol`).
 """

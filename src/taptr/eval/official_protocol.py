@@ -23,10 +23,10 @@ import torch.nn.functional as F
 
 from taptr.api import TAPTR, normalize_frames
 from taptr.api.context import PREFIX_FRAMES, ContextPoints, draw_context
-from taptr.eval.queries import QueryPoints
+from taptr.eval.query_sampling import QueryPoints
 from taptr.eval.trackers import query_frames, track_both_ways
 from taptr.geometry import normalized_to_pixels, pixels_to_normalized
-from taptr.official.forward import official_forward
+from taptr.official.model_forward import official_forward
 
 NUM_QUERIES = 800
 """Points per pass after padding (the official ``num_queries_per_video_eval``)."""

@@ -1,0 +1,74 @@
+"""The options of every command that runs a model, and the predictor they describe."""
+
+from __future__ import annotations
+
+import argparse
+from typing import TYPE_CHECKING
+
+from taptr.cli.options import (
+    MAX_INPUT_SIDE,
+    MIN_INPUT_SIDE,
+    add_device_argument,
+    check_at_least,
+    check_device,
+    check_input_size,
+)
+
+if TYPE_CHECKING:
+    from taptr.api.predictor import Predictor
+
+
+def add_model_arguments(parser: argparse.ArgumentParser, max_frames: int | None = None) -> None:
+    """Options shared by the commands that run a model (``max_frames``: its default)."""
+    parser.add_argument(
+        "--checkpoint",
+        default=None,
+        help="checkpoint file or model name (default: the paper's weights taptrv2-official "
+        "from the Hugging Face cache or downloaded once; without network, the bundled "
+        "taptr-small-synthetic, with a warning)",
+    )
+    add_device_argument(parser)
+    parser.add_argument(
+        "--context-points",
+        type=int,
+        default=None,
+        metavar="K",
+        help="pad the queries with seeded context points up to K points, as the official "
+        "demo does; they are never written out; 0 turns it off (default: the model's, 800 "
+        "for the paper's weights)",
+    )
+    parser.add_argument(
+        "--input-size",
+        type=int,
+        nargs=2,
+        metavar=("HEIGHT", "WIDTH"),
+        default=None,
+        help="resolution the model sees, each side in "
+        f"[{MIN_INPUT_SIDE}, {MAX_INPUT_SIDE}] (default: the model's, 512 512 for the paper "
+        "model)",
+    )
+    parser.add_argument(
+        "--max-frames",
+        type=int,
+        default=max_frames,
+        help=f"read at most this many frames (default: {max_frames or 'all'})",
+    )
+
+
+def check_model_arguments(args: argparse.Namespace) -> None:
+    """Checks the options of `add_model_arguments` before any file is read."""
+    check_device(args.device)
+    check_input_size(args.input_size)
+    if args.context_points is not None:
+        check_at_least(args.context_points, 0, "--context-points")
+    check_at_least(args.max_frames, 1, "--max-frames")
+
+
+def load_predictor(args: argparse.Namespace) -> Predictor:
+    """The predictor the model arguments describe."""
+    from taptr.api.predictor import Predictor
+
+    size = tuple(args.input_size) if args.input_size else None
+    return Predictor.from_pretrained(
+        args.checkpoint, device=args.device, input_size=size, context_points=args.context_points
+    )
