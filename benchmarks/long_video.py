@@ -11,6 +11,9 @@ size; cached under runs/bench/), then, each in its own process and measured with
 3. decoding + drawing + encoding alone: the same frames decoded, drawn with the tracks of
    run 2 and encoded, without the model (the share of the pipeline that is not tracking).
 
+With ``--backward`` the points are placed on frame 30 and tracked both ways, so the file is
+also read backwards, segment by segment.
+
 Prints a table and writes benchmarks/results/long-video-FRAMES.json.
 """
 
@@ -81,6 +84,11 @@ def main() -> int:
     parser.add_argument("--checkpoint", default="taptr-small-synthetic", help="model to run")
     parser.add_argument("--work", type=Path, default=Path("runs/bench"), help="scratch folder")
     parser.add_argument(
+        "--backward",
+        action="store_true",
+        help="points on frame 30, tracked both ways (the file is read a second time, backwards)",
+    )
+    parser.add_argument(
         "--io-only", nargs=3, metavar=("CLIP", "NPZ", "OUT"), help=argparse.SUPPRESS
     )
     args = parser.parse_args()
@@ -93,6 +101,8 @@ def main() -> int:
     )
     grid = str(math.isqrt(args.points))
     track = ["taptr", "track", str(clip), "--grid", grid, "--checkpoint", args.checkpoint]
+    if args.backward:
+        track += ["--backward", "--query-frame", "30"]
     rows = {}
     short = args.work / "out-60"
     rows["first 60 frames"] = measured([*track, "--max-frames", "60", "--out", str(short)])
@@ -102,7 +112,9 @@ def main() -> int:
         [sys.executable, __file__, "--io-only", str(clip), str(full / "tracks.npz"),
          str(args.work / "io-only.mp4")]
     )  # fmt: skip
-    print(f"{args.frames} frames of {width}x{height}, {int(grid) ** 2} points, {args.checkpoint}")
+    both_ways = ", on frame 30, --backward" if args.backward else ""
+    print(f"{args.frames} frames of {width}x{height}, {int(grid) ** 2} points{both_ways}, ", end="")
+    print(args.checkpoint)
     print("| run | seconds | peak RSS |\n|---|---:|---:|")
     for name, (seconds, rss) in rows.items():
         print(f"| {name} | {seconds:.1f} | {rss:.2f} GB |")
@@ -112,7 +124,7 @@ def main() -> int:
     print(f"peak RSS, all / first 60: {full_rss / short_rss:.3f}")
     print(f"decode + draw + encode share of the full run: {io_time / full_time:.1%}")
     RESULTS.mkdir(exist_ok=True)
-    out = RESULTS / f"long-video-{args.frames}.json"
+    out = RESULTS / f"long-video-{args.frames}{'-backward' if args.backward else ''}.json"
     out.write_text(
         json.dumps({"args": vars(args) | {"work": str(args.work)}, "rows": rows}, indent=1)
     )

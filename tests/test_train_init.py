@@ -119,3 +119,35 @@ def test_init_from_builds_no_second_model(tmp_path, monkeypatch):
     init_from_checkpoint(target, str(tmp_path / "start.pt"))
     assert "cpu" not in built  # only the meta-device skeleton of the shape check
     assert all(torch.equal(target.state_dict()[k], v) for k, v in source.state_dict().items())
+
+
+def test_init_parts_copy_only_those_parts(tmp_path):
+    torch.manual_seed(7)
+    source = taptr.build_model("tiny")
+    taptr.save_checkpoint(source, tmp_path / "start.pt")
+    torch.manual_seed(8)
+    config = load_config(
+        None,
+        [
+            "preset=small",
+            "model.preset=tiny",
+            "model.position_update=false",
+            "model.disentangler=false",
+            f"init_from={tmp_path / 'start.pt'}",
+            'init_parts=["backbone", "input_projections", "encoder"]',
+        ],
+    )
+    assert not config.model.position_update
+    run = loop._build(config, data_parallel.setup("cpu"), None)
+    theirs, ours = source.state_dict(), run.model.state_dict()
+    copied = [k for k in ours if k.split(".")[0] in config.init_parts]
+    assert copied and all(torch.equal(ours[k], theirs[k]) for k in copied)
+    fresh = [k for k in ours if k.startswith("decoder.") and k.endswith("value_proj.weight")]
+    assert fresh and not any(torch.equal(ours[k], theirs[k]) for k in fresh)
+
+
+def test_init_parts_are_checked():
+    with pytest.raises(ValueError, match="unknown init_parts"):
+        load_config(None, ["init_from=x.pt", 'init_parts=["encodr"]'])
+    with pytest.raises(ValueError, match="init_parts needs init_from"):
+        load_config(None, ['init_parts=["encoder"]'])

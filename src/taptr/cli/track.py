@@ -41,8 +41,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "(replacing an earlier run's files together, or not at all if interrupted). Frames are "
         "decoded, tracked, drawn and encoded as they go, so memory does not grow with the "
         "video (--backward reads the file twice, backwards first). Under torchrun, the videos "
-        "are shared out among the processes. One run tracks at most 100,000 points; the environment "
-        "variable TAPTR_MAX_POINTS raises that.",
+        "are shared out among the processes. One run tracks at most 100,000 points; the "
+        "environment variable TAPTR_MAX_POINTS raises that.",
     )
     parser.add_argument(
         "video",

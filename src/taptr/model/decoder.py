@@ -7,7 +7,7 @@ of the moved position → temporal self-attention across the window's frames of 
 the decoder fuses the APU displacement into the features that the per-layer position and
 visibility heads read.
 
-TAPTR (v1) subclasses these modules in `taptr.model.v1`.
+TAPTR (v1) subclasses these modules in `taptr.model.v1`, overriding `Decoder`'s hooks.
 
 Tracked and untracked entries (a point before its start frame) never attend to each other,
 so untracked entries run through the network without affecting anything that is kept. The
@@ -217,9 +217,8 @@ class Decoder(nn.Module):
     Attributes:
         layers: the decoder layers.
         position_embed: embeds each layer's input reference as its query position.
-        content_updater: updates each layer's input content from the previous layer's
-            output and the window-entry content, out + U([out, content]) (from the second
-            layer on; v1 from the first).
+        content_updater: U of a layer's input out + U([out, content]) from the previous
+            layer's output and the window-entry content (from layer 1 on; v1 from layer 0).
         update_fuser: fuses the APU displacement's embedding into the features the heads
             read (`taptr.model.position_update.fuse_displacement`); it updates nothing.
             None without the APU.
@@ -275,13 +274,40 @@ class Decoder(nn.Module):
         """A layer's input: the previous output plus ``content_updater``'s update."""
         return out + self.content_updater(torch.cat((out, content), -1), execution.row_block)
 
-    def read_heads(
+    def prepare_window(
         self,
-        index: int,
-        result: LayerOutput,
-        previous: Tensor,
-        step: Tensor,
+        content: Tensor,
+        memory: Tensor,
+        spatial_shapes: list[tuple[int, int]],
         execution: Execution,
+    ) -> list[Tensor]:
+        """Tensors prepared once per window for `layer_extras`; TAPTRv2 needs none.
+
+        Args:
+            content: (B, W_t, N, C) content at window entry.
+            memory: (B·W_t, S, C) encoder memory of the window's frames.
+            spatial_shapes: (H_l, W_l) per level.
+            execution: how to run.
+        """
+        return []
+
+    def layer_input(self, index: int, out: Tensor, content: Tensor, execution: Execution) -> Tensor:
+        """Layer ``index``'s input (B, W_t, N, C) from the previous output and entry content.
+
+        The first layer reads ``out`` (the window-entry content) as it is, the later ones
+        ``out`` updated by `update_layer_content`.
+        """
+        return out if index == 0 else self.update_layer_content(out, content, execution)
+
+    def layer_extras(self, prepared: list[Tensor], reference: Tensor) -> tuple[Tensor, ...]:
+        """A layer's arguments after the common ones, at its input reference; none here.
+
+        ``prepared`` is what `prepare_window` returned, ``reference`` (B, W_t, N, 4) in [0, 1].
+        """
+        return ()
+
+    def read_heads(
+        self, index: int, result: LayerOutput, previous: Tensor, step: Tensor, execution: Execution
     ) -> tuple[Refined, Tensor, Tensor]:
         """Layer ``index``'s heads on its output.
 
@@ -327,15 +353,17 @@ class Decoder(nn.Module):
         """
         masks = attention_masks(tracking, execution.grouped_point_attention)
         step = update.unsqueeze(-1).to(content.dtype)
+        prepared = self.prepare_window(content, memory, spatial_shapes, execution)
         reference = positions.sigmoid()
         previous = reference
         out, features = content, content
         outputs = LayerOutputs()
         for index, layer in enumerate(self.layers):
             query_pos = self.query_position(reference, execution)
-            x = out if index == 0 else self.update_layer_content(out, content, execution)
+            x = self.layer_input(index, out, content, execution)
+            extras = self.layer_extras(prepared, reference)
             result = layer(
-                x, query_pos, reference, memory, spatial_shapes, masks, update, execution
+                x, query_pos, reference, memory, spatial_shapes, masks, update, execution, *extras
             )
             out = result.content
             refined, visibility, features = self.read_heads(

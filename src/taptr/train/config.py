@@ -30,6 +30,16 @@ from taptr.config import ModelConfig
 
 Precision = Literal["fp32", "bf16", "fp16"]
 
+INIT_PARTS = (
+    "backbone",
+    "input_projections",
+    "encoder",
+    "query_init",
+    "decoder",
+    "window_updater",
+)
+"""The parts of a `taptr.model.taptr.TAPTR` that ``init_parts`` can copy from a checkpoint."""
+
 
 @dataclass(frozen=True)
 class DataConfig:
@@ -104,6 +114,9 @@ class TrainConfig:
             when present, else random), ``none``, or a path to torchvision's file.
         init_from: checkpoint whose weights start the run (a taptr checkpoint or the
             authors' release); empty: fresh weights.
+        init_parts: with ``init_from``, copy only these parts of the model (names of
+            `INIT_PARTS`, e.g. ``["backbone", "input_projections", "encoder"]`` to start a
+            new decoder on trained features); empty: all of it.
         seed: base seed; process r uses seed + r.
         device: ``auto`` (CUDA when available), ``cpu``, or ``cuda``.
         log_every: steps between console/TensorBoard logs.
@@ -131,6 +144,7 @@ class TrainConfig:
     supervise_updated_positions: bool = True
     backbone_weights: str = "auto"
     init_from: str = ""
+    init_parts: tuple[str, ...] = ()
     seed: int = 42
     device: str = "auto"
     log_every: int = 50
@@ -146,6 +160,11 @@ class TrainConfig:
             raise ValueError(f"ema_decay must lie in [0, 1), got {self.ema_decay}")
         if self.log_every < 1 or self.checkpoint_every < 1 or self.eval_every < 0:
             raise ValueError("log_every and checkpoint_every must be >= 1, eval_every >= 0")
+        unknown = sorted(set(self.init_parts) - set(INIT_PARTS))
+        if unknown:
+            raise ValueError(f"unknown init_parts {unknown}; choose from {', '.join(INIT_PARTS)}")
+        if self.init_parts and not self.init_from:
+            raise ValueError("init_parts needs init_from (the checkpoint to copy them from)")
 
     def to_dict(self) -> dict[str, Any]:
         """Plain data (the form ``config.json`` stores)."""

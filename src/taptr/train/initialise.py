@@ -66,15 +66,28 @@ def init_backbone(model: TAPTR, setting: str) -> bool:
     return True
 
 
-def init_from_checkpoint(model: TAPTR, path: str) -> None:
+def init_from_checkpoint(model: TAPTR, path: str, parts: tuple[str, ...] = ()) -> None:
     """Copies the weights of any checkpoint `taptr.load_checkpoint` reads (EMA when present).
 
     The file's weights go straight into ``model``: no second model is built.
 
+    Args:
+        model: the freshly built model.
+        path: the checkpoint.
+        parts: copy only these top-level parts (e.g. ``("backbone", "encoder")``), each
+            whole and strictly; the rest keeps its fresh weights. Empty: everything.
+
     Raises:
-        taptr.checkpoint.CheckpointError: the checkpoint's model does not match, with the
-            missing, unexpected and mis-shaped keys listed.
+        taptr.checkpoint.CheckpointError: the checkpoint's model (or part) does not match,
+            with the missing, unexpected and mis-shaped keys listed.
     """
     _, weights = read_checkpoint(path)
-    load_weights(model, weights, str(path))
-    logger.info("weights initialised from %s", path)
+    if not parts:
+        load_weights(model, weights, str(path))
+        logger.info("weights initialised from %s", path)
+        return
+    for part in parts:
+        prefix = f"{part}."
+        own = {k[len(prefix) :]: v for k, v in weights.items() if k.startswith(prefix)}
+        load_weights(getattr(model, part), own, f"{path} ({part})")
+    logger.info("%s initialised from %s", ", ".join(parts), path)

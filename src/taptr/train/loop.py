@@ -86,7 +86,7 @@ def _build(
     if state is None:
         init_backbone(model, config.backbone_weights)
         if config.init_from:
-            init_from_checkpoint(model, config.init_from)
+            init_from_checkpoint(model, config.init_from, config.init_parts)
     model.to(info.device).train()
     optimizer, scheduler = build_optimizer(
         model,

@@ -38,6 +38,7 @@ RESUMABLE_CHANGES = frozenset(
         "out_dir",
         "device",
         "init_from",
+        "init_parts",
         "backbone_weights",
         "data.num_workers",
         "data.val_root",

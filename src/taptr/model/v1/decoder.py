@@ -20,10 +20,10 @@ from torch import Tensor
 
 from taptr.geometry import inverse_sigmoid
 from taptr.model.attention import DeformableAttention, MultiheadAttention
-from taptr.model.decoder import Decoder, DecoderLayer, DecoderOutput, LayerOutput, LayerOutputs
+from taptr.model.decoder import Decoder, DecoderLayer, LayerOutput
 from taptr.model.execution import Execution
 from taptr.model.layers import MLP
-from taptr.model.masks import AttentionMasks, attention_masks
+from taptr.model.masks import AttentionMasks
 from taptr.model.position_update import Refined
 from taptr.model.v1.cost_volume import CostVolume
 
@@ -127,7 +127,11 @@ class V1DecoderLayer(DecoderLayer):
 
 
 class V1Decoder(Decoder):
-    """v1's stack: the v2 decoder's embeddings and heads, plus the cost volume.
+    """v1's stack: the v2 decoder's loop, embeddings and heads, plus the cost volume.
+
+    `Decoder.forward` runs the layers; v1 overrides its hooks `prepare_window` (the cost
+    volume's maps), `layer_input` (the updater from the first layer on) and `layer_extras`
+    (the cost-volume samples at each layer's reference), and reports by `look_forward_twice`.
 
     Attributes:
         cost_volume: correlation of each point with its frame, or None (ablation).
@@ -159,55 +163,39 @@ class V1Decoder(Decoder):
         for name in ("position_heads", "visibility_heads"):
             self._modules[name] = self._modules.pop(name)
 
-    def forward(
+    def prepare_window(
         self,
         content: Tensor,
-        positions: Tensor,
         memory: Tensor,
         spatial_shapes: list[tuple[int, int]],
-        tracking: Tensor,
-        update: Tensor,
         execution: Execution,
-    ) -> DecoderOutput:
-        """Decodes one window.
+    ) -> list[Tensor]:
+        """v1: the cost volume's L maps (B·W_t, N, H_l, W_l) from the window-entry content.
+
+        None without the cost volume. See `Decoder.prepare_window` for the arguments.
+        """
+        if self.cost_volume is None:
+            return []
+        batch, frames, points, channels = content.shape
+        flat_content = content.reshape(batch * frames, points, channels)
+        return self.cost_volume.prepare(memory, spatial_shapes, flat_content, execution.row_block)
+
+    def layer_input(self, index: int, out: Tensor, content: Tensor, execution: Execution) -> Tensor:
+        """v1 applies the content updater from the first layer on (the index is unused)."""
+        return self.update_layer_content(out, content, execution)
+
+    def layer_extras(self, prepared: list[Tensor], reference: Tensor) -> tuple[Tensor, ...]:
+        """v1: the (B, W_t, N, K) cost-volume samples around the layer's input reference.
 
         Args:
-            content: (B, W_t, N, C) content at window entry.
-            positions: (B, W_t, N, 4) position logits at window entry.
-            memory: (B·W_t, S, C) encoder memory of the window's frames.
-            spatial_shapes: (H_l, W_l) per level.
-            tracking: (B, W_t, N) entries at or after each point's start frame.
-            update: (B, W_t, N) tracking entries after the start frame.
-            execution: how to run.
+            prepared: the maps of `prepare_window` (none without the cost volume).
+            reference: (B, W_t, N, 4) the layer's input reference in [0, 1].
+
+        Returns:
+            ``(correlation,)`` for `V1DecoderLayer.forward`, or nothing without the maps.
         """
-        batch, frames, points, channels = content.shape
-        masks = attention_masks(tracking, execution.grouped_point_attention)
-        step = update.unsqueeze(-1).to(content.dtype)
-        maps = None
-        if self.cost_volume is not None:
-            flat_content = content.reshape(batch * frames, points, channels)
-            maps = self.cost_volume.prepare(
-                memory, spatial_shapes, flat_content, execution.row_block
-            )
-        reference = positions.sigmoid()
-        previous = reference
-        out, features = content, content
-        outputs = LayerOutputs()
-        for index, layer in enumerate(self.layers):
-            query_pos = self.query_position(reference, execution)
-            x = self.update_layer_content(out, content, execution)  # from the first layer on
-            correlation = None
-            if self.cost_volume is not None and maps is not None:
-                flat = reference[..., :2].reshape(batch * frames, points, 2)
-                correlation = self.cost_volume.sample(maps, flat).view(batch, frames, points, -1)
-            result = layer(
-                x, query_pos, reference, memory, spatial_shapes, masks, update, execution,
-                correlation,
-            )  # fmt: skip
-            out = result.content
-            refined, visibility, features = self.read_heads(
-                index, result, previous, step, execution
-            )
-            outputs.add(refined, visibility)
-            reference, previous = refined.reference, refined.previous
-        return outputs.stacked(features)
+        if self.cost_volume is None or not prepared:
+            return ()
+        batch, frames, points = reference.shape[:3]
+        flat = reference[..., :2].reshape(batch * frames, points, 2)
+        return (self.cost_volume.sample(prepared, flat).view(batch, frames, points, -1),)
