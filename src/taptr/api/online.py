@@ -243,7 +243,8 @@ class OnlineTracker:
     def _decode(self, state: StreamState, first: int, last: int) -> None:
         if not state.context_added:
             self._add_context(state)
-        decode_window(self.model, state.tracker, first, last, state.encoded)
+        with self.predictor.precision():
+            decode_window(self.model, state.tracker, first, last, state.encoded)
         state.last_decoded = last
 
     def _emit(self, state: StreamState, bound: int) -> StreamUpdate:

@@ -12,6 +12,7 @@ map onto each other across resolutions (the official convention).
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 from collections.abc import Callable
@@ -29,6 +30,7 @@ from taptr.api.queries import model_queries, on_own_frames
 from taptr.api.resize import resize_frames
 from taptr.geometry import normalized_to_pixels
 from taptr.model.frames import EncodedFrames
+from taptr.model.kernel_choice import choose_kernel
 from taptr.model.sliding_window import run_windows
 from taptr.model.taptr import TAPTR, normalize_frames
 from taptr.types import TrackingResult
@@ -47,8 +49,17 @@ class Predictor:
         input_size: (height, width) frames are resized to; default: the model config's.
         visibility_threshold: a point is visible where sigmoid(visibility logit) exceeds it.
         device: where to run; default: CUDA if available, else CPU.
-        dtype: floating type of the model and its inputs (float32; float64 for exact
-            comparisons; bfloat16 or float16 on GPUs).
+        dtype: floating type of the model's weights and inputs (float32; float64 for
+            exact comparisons).
+        autocast: run the model under ``torch.autocast`` with this type (``torch.float16``
+            or ``torch.bfloat16``), weights kept in ``dtype``: matrix products in half
+            precision, reductions and the position updates in float32, as the official demo
+            runs (float16). None (the default) runs in ``dtype`` throughout. Accuracy against
+            float32 is in docs/BENCHMARKS.md.
+        kernel: the deformable-attention kernel: ``auto`` measures ``gather`` against
+            ``grid_sample`` on accelerators (`taptr.model.kernel_choice`) and keeps the
+            model's execution on CPU (where ``gather`` is measured faster); ``measure``
+            measures on any device; ``gather`` or ``grid_sample`` sets it.
         context_points: pad each video's queries with seeded context points up to this
             many points before the model runs (`taptr.api.context`); they are never
             returned. Default: the model config's (800 for the paper's weights, the points
@@ -65,6 +76,8 @@ class Predictor:
         visibility_threshold: float = 0.5,
         device: str | torch.device | None = None,
         dtype: torch.dtype = torch.float32,
+        autocast: torch.dtype | None = None,
+        kernel: str = "auto",
         context_points: int | None = None,
         source: str | None = None,
         notice: str | None = None,
@@ -74,6 +87,12 @@ class Predictor:
         self.device = torch.device(device)
         self.dtype = dtype
         self.model = model.to(self.device, dtype).eval()
+        if autocast not in (None, torch.float16, torch.bfloat16):
+            raise ValueError(
+                f"autocast must be torch.float16, torch.bfloat16 or None, got {autocast}"
+            )
+        self.autocast = autocast
+        self.kernel = choose_kernel(self.model, self.device, kernel)
         config = model.config
         height, width = input_size or (config.input_size if config else (512, 512))
         self.input_size: tuple[int, int] = (int(height), int(width))
@@ -176,6 +195,12 @@ class Predictor:
         chunk = resize_frames(frames, self.input_size, self.resize).to(self.device)
         return normalize_frames(chunk)[None].to(self.dtype)
 
+    def precision(self) -> contextlib.AbstractContextManager[object]:
+        """The context every model call runs in: autocast when the predictor asks for it."""
+        if self.autocast is None:
+            return contextlib.nullcontext()
+        return torch.autocast(self.device.type, dtype=self.autocast)
+
     def _track_one(
         self, frames: Tensor, queries: Tensor, backward: bool, on_window: Callable[[], object]
     ) -> tuple[Tensor, Tensor]:
@@ -208,9 +233,10 @@ class Predictor:
                 return self.prepare(frames[num_frames - 1 - last : num_frames - first].flip(0))
             return self.prepare(frames[first : last + 1])
 
-        output = run_windows(
-            self.model, query_set, num_frames, EncodedFrames(self.model, load), dtype, on_window
-        )
+        with self.precision():
+            output = run_windows(
+                self.model, query_set, num_frames, EncodedFrames(self.model, load), dtype, on_window
+            )
         real = queries.shape[0]  # context points come after the user's and are dropped
         positions = output.positions[0, :, :real].float()
         logits = output.visibility_logits[0, :, :real, 1].float()

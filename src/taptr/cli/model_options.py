@@ -17,6 +17,12 @@ from taptr.cli.options import (
 if TYPE_CHECKING:
     from taptr.api.predictor import Predictor
 
+AUTOCAST_TYPES = ("float32", "bfloat16", "float16")
+"""``--dtype`` choices; float32 runs without autocast."""
+
+KERNEL_CHOICES = ("auto", "measure", "gather", "grid_sample")
+"""``--kernel`` choices (`taptr.model.kernel_choice.CHOICES`; here so --help needs no torch)."""
+
 
 def add_model_arguments(parser: argparse.ArgumentParser, max_frames: int | None = None) -> None:
     """Options shared by the commands that run a model (``max_frames``: its default)."""
@@ -48,6 +54,27 @@ def add_model_arguments(parser: argparse.ArgumentParser, max_frames: int | None 
         "model)",
     )
     parser.add_argument(
+        "--dtype",
+        choices=AUTOCAST_TYPES,
+        default="float32",
+        help="run the model under autocast in this type, weights kept in float32 (float16 "
+        "as the official demo runs, or bfloat16: for GPUs; accuracy in docs/BENCHMARKS.md) "
+        "(default: float32, no autocast)",
+    )
+    parser.add_argument(
+        "--kernel",
+        choices=KERNEL_CHOICES,
+        default="auto",
+        help="deformable-attention kernel: auto measures gather against grid_sample on GPUs "
+        "and uses gather on CPU; measure times both on any device (default: auto)",
+    )
+    parser.add_argument(
+        "--compile",
+        action="store_true",
+        help="compile the model with torch.compile (slow first windows, then faster; needs "
+        "a C++ compiler on CPU)",
+    )
+    parser.add_argument(
         "--max-frames",
         type=int,
         default=max_frames,
@@ -66,9 +93,22 @@ def check_model_arguments(args: argparse.Namespace) -> None:
 
 def load_predictor(args: argparse.Namespace) -> Predictor:
     """The predictor the model arguments describe."""
+    import torch
+
     from taptr.api.predictor import Predictor
 
     size = tuple(args.input_size) if args.input_size else None
-    return Predictor.from_pretrained(
-        args.checkpoint, device=args.device, input_size=size, context_points=args.context_points
+    autocast = None if args.dtype == "float32" else getattr(torch, args.dtype)
+    predictor = Predictor.from_pretrained(
+        args.checkpoint,
+        device=args.device,
+        input_size=size,
+        context_points=args.context_points,
+        autocast=autocast,
+        kernel=args.kernel,
     )
+    if args.compile:
+        from taptr.export.compile import compile_model
+
+        compile_model(predictor.model)
+    return predictor

@@ -13,7 +13,13 @@ from __future__ import annotations
 from taptr.model.taptr import TAPTR
 
 
-def compile_model(model: TAPTR, *, mode: str | None = None, dynamic: bool | None = None) -> TAPTR:
+def compile_model(
+    model: TAPTR,
+    *,
+    mode: str | None = None,
+    dynamic: bool | None = None,
+    backend: str = "inductor",
+) -> TAPTR:
     """Compiles the model's backbone, input projections, encoder and decoder in place.
 
     Args:
@@ -21,7 +27,9 @@ def compile_model(model: TAPTR, *, mode: str | None = None, dynamic: bool | None
         mode: ``torch.compile`` mode (None, ``"reduce-overhead"``, ``"max-autotune"``).
         dynamic: ``torch.compile``'s dynamic-shape setting (None: specialise first, then
             generalise the sizes that change).
+        backend: ``torch.compile``'s backend (``inductor`` generates code; ``eager`` only
+            traces, which tests use to check the traced model quickly).
     """
     for part in (model.backbone, model.input_projections, model.encoder, model.decoder):
-        part.compile(mode=mode, dynamic=dynamic)
+        part.compile(mode=mode, dynamic=dynamic, backend=backend)
     return model

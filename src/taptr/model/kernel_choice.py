@@ -1,0 +1,98 @@
+"""The deformable-attention kernel a device runs fastest, found by measuring it there.
+
+Both kernels compute the same sums (`taptr.model.ops`), so the choice changes speed only.
+On CPU ``gather`` is several times faster (docs/BENCHMARKS.md); on GPUs the balance depends
+on the chip and the sizes (``grid_sample`` is one fused CUDA kernel, ``gather`` is
+``embedding_bag``), so there the predictor times the model's own encoder on a frame of its
+input size with each kernel and keeps the faster one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable
+
+import torch
+
+from taptr.model.execution import Kernel
+from taptr.model.ops import KERNELS
+from taptr.model.taptr import TAPTR
+
+CHOICES = ("auto", "measure", *KERNELS)
+"""What `choose_kernel` accepts: ``auto``, ``measure`` or a kernel's name."""
+
+
+def _synchronize(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+@torch.no_grad()
+def time_kernels(
+    model: TAPTR,
+    device: torch.device,
+    *,
+    repeats: int = 3,
+    clock: Callable[[], float] = time.perf_counter,
+) -> dict[str, float]:
+    """Seconds per encoder call with each kernel, on one random frame of the input size.
+
+    The backbone and input projections run once outside the clock: they do not depend on
+    the kernel. Each kernel runs once to warm up, then the best of ``repeats`` is kept.
+
+    Args:
+        model: the network, already on ``device`` (its execution is restored afterwards).
+        device: where it runs.
+        repeats: timed calls per kernel.
+        clock: the timer (injected by tests).
+
+    Returns:
+        ``{kernel: seconds}`` for every kernel of `taptr.model.ops.KERNELS`.
+    """
+    height, width = model.config.input_size if model.config else (256, 256)
+    dtype = next(model.parameters()).dtype
+    frame = torch.randn(1, 3, height, width, device=device, dtype=dtype)
+    maps = model.input_projections(model.backbone(frame))
+    original = model.execution
+    seconds = {}
+    try:
+        for kernel in KERNELS:
+            execution = dataclasses.replace(original, kernel=kernel)
+            model.encoder(maps, execution)
+            best = float("inf")
+            for _ in range(repeats):
+                _synchronize(device)
+                start = clock()
+                model.encoder(maps, execution)
+                _synchronize(device)
+                best = min(best, clock() - start)
+            seconds[kernel] = best
+    finally:
+        model.execution = original
+    return seconds
+
+
+def choose_kernel(model: TAPTR, device: torch.device, choice: str = "auto") -> Kernel:
+    """Sets the model's deformable-attention kernel for ``device``; returns the kernel.
+
+    Args:
+        model: the network on ``device``; its execution keeps every other setting.
+        device: where it runs.
+        choice: ``auto`` (measure on accelerators, keep the execution's kernel on CPU),
+            ``measure`` (measure on any device), or ``gather`` / ``grid_sample``.
+
+    Raises:
+        ValueError: for a choice not in `CHOICES`.
+    """
+    if choice not in CHOICES:
+        raise ValueError(f"unknown kernel {choice!r}; choose from {', '.join(CHOICES)}")
+    kernel = choice
+    if choice == "auto" and device.type == "cpu":
+        kernel = model.execution.kernel
+    elif choice in ("auto", "measure"):
+        seconds = time_kernels(model, device)
+        kernel = min(seconds, key=seconds.__getitem__)
+    if kernel != model.execution.kernel:
+        model.set_execution(dataclasses.replace(model.execution, kernel=kernel))
+    return kernel  # type: ignore[return-value]
