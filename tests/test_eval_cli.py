@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 
 import numpy as np
@@ -254,3 +255,15 @@ def test_videos_without_queries_have_null_metrics_and_stay_out_of_the_mean(tmp_p
     assert empty["num_points"] == 0 and empty["average_jaccard"] is None
     assert report["mean"]["average_jaccard"] == pytest.approx(seen["average_jaccard"])
     assert "hidden" in out
+
+
+def test_dtype_runs_the_predictor_under_autocast(data):
+    from taptr.eval.runner import EvalConfig, build_protocol
+
+    root, checkpoint = data
+    config = EvalConfig(dataset="davis", root=str(root), checkpoint=str(checkpoint))
+    assert build_protocol(config, "cpu").tracker.predictor.autocast is None
+    half = dataclasses.replace(config, dtype="bfloat16")
+    assert build_protocol(half, "cpu").tracker.predictor.autocast == torch.bfloat16
+    with pytest.raises(ValueError, match="unknown dtype 'float64'"):
+        dataclasses.replace(config, dtype="float64")

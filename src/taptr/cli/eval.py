@@ -34,7 +34,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     """Registers the subcommand."""
     from taptr.eval.datasets import DATASETS
     from taptr.eval.metrics import QUERY_MODES
-    from taptr.eval.runner import PROTOCOLS, TRACKERS
+    from taptr.eval.runner import DTYPES, PROTOCOLS, TRACKERS
 
     parser = subparsers.add_parser(
         "eval",
@@ -86,6 +86,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="standard protocol: track each video's queries in groups of G points, one "
         "model call each, as a user clicking a few points would (default: all at once)",
     )
+    parser.add_argument(
+        "--dtype",
+        choices=DTYPES,
+        default="float32",
+        help="standard protocol: run the model under autocast in this type (weights in "
+        "float32; for GPUs) (default: float32, no autocast)",
+    )
     parser.add_argument("--protocol", choices=PROTOCOLS, default="standard")
     parser.add_argument("--max-videos", type=int, metavar="N", help="score only the first N videos")
     parser.add_argument(
@@ -124,6 +131,7 @@ def run(args: argparse.Namespace) -> int:
         overlays=args.overlays,
         context_points=args.context_points,
         points_per_call=args.points_per_call,
+        dtype=args.dtype,
     )
     try:
         outcome = run_evaluation(config, args.out, progress=True)

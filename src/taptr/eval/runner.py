@@ -37,6 +37,7 @@ logger = logging.getLogger(__name__)
 
 TRACKERS = ("taptr", "static", "lk")
 PROTOCOLS = ("standard", "official")
+DTYPES = ("float32", "bfloat16", "float16")
 
 
 @dataclass(frozen=True)
@@ -59,6 +60,8 @@ class EvalConfig:
             None = the model's own count, 0 = none.
         points_per_call: track each video's queries in groups of this many, one call each
             (standard protocol, taptr tracker); None = all at once.
+        dtype: ``float32``, or run the model under autocast in ``bfloat16`` / ``float16``
+            (standard protocol, taptr tracker).
     """
 
     dataset: str
@@ -72,6 +75,7 @@ class EvalConfig:
     overlays: int = 0
     context_points: int | None = None
     points_per_call: int | None = None
+    dtype: str = "float32"
 
     def __post_init__(self) -> None:
         for name, value, allowed in (
@@ -79,6 +83,7 @@ class EvalConfig:
             ("mode", self.mode, QUERY_MODES),
             ("tracker", self.tracker, TRACKERS),
             ("protocol", self.protocol, PROTOCOLS),
+            ("dtype", self.dtype, DTYPES),
         ):
             if value not in allowed:
                 raise ValueError(f"unknown {name} {value!r}; expected one of {', '.join(allowed)}")
@@ -111,6 +116,8 @@ def build_protocol(config: EvalConfig, device: str) -> EvalProtocol:
         from taptr.eval.baselines import LucasKanadeTracker
 
         return StandardProtocol(LucasKanadeTracker())
+    import torch
+
     from taptr.eval.predictor_tracker import PredictorTracker
 
     tracker = PredictorTracker.from_pretrained(
@@ -119,6 +126,7 @@ def build_protocol(config: EvalConfig, device: str) -> EvalProtocol:
         device=device,
         context_points=config.context_points,
         points_per_call=config.points_per_call,
+        autocast=None if config.dtype == "float32" else getattr(torch, config.dtype),
     )
     return StandardProtocol(tracker)
 
