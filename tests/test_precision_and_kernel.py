@@ -88,7 +88,7 @@ def test_time_kernels_times_both_and_restores_the_execution(model):
 
 def test_measure_keeps_the_faster_kernel(model, monkeypatch):
     monkeypatch.setattr(
-        kernel_choice, "time_kernels", lambda m, d: {"grid_sample": 1.0, "gather": 2.0}
+        kernel_choice, "time_kernels", lambda m, d, input_size: {"grid_sample": 1.0, "gather": 2.0}
     )
     fast = copy.deepcopy(model).set_execution("fast")
     assert choose_kernel(fast, torch.device("cpu"), "measure") == "grid_sample"
@@ -98,7 +98,9 @@ def test_measure_keeps_the_faster_kernel(model, monkeypatch):
     gpu = copy.deepcopy(model).set_execution("fast")
     assert choose_kernel(gpu, torch.device("cuda"), "auto") == "grid_sample"
     # ... and keeps the execution's kernel on CPU, without measuring
-    monkeypatch.setattr(kernel_choice, "time_kernels", lambda m, d: pytest.fail("measured"))
+    monkeypatch.setattr(
+        kernel_choice, "time_kernels", lambda m, d, input_size: pytest.fail("measured")
+    )
     cpu = copy.deepcopy(model).set_execution("fast")
     assert choose_kernel(cpu, torch.device("cpu"), "auto") == "gather"
 

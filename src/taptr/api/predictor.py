@@ -92,10 +92,10 @@ class Predictor:
                 f"autocast must be torch.float16, torch.bfloat16 or None, got {autocast}"
             )
         self.autocast = autocast
-        self.kernel = choose_kernel(self.model, self.device, kernel)
         config = model.config
         height, width = input_size or (config.input_size if config else (512, 512))
         self.input_size: tuple[int, int] = (int(height), int(width))
+        self.kernel = choose_kernel(self.model, self.device, kernel, self.input_size)
         self.resize = config.resize if config else "bilinear"
         if context_points is None:
             context_points = config.context_points if config else 0

@@ -26,6 +26,8 @@ CHOICES = ("auto", "measure", *KERNELS)
 def _synchronize(device: torch.device) -> None:
     if device.type == "cuda":
         torch.cuda.synchronize(device)
+    elif device.type == "mps":
+        torch.mps.synchronize()
 
 
 @torch.no_grad()
@@ -33,6 +35,7 @@ def time_kernels(
     model: TAPTR,
     device: torch.device,
     *,
+    input_size: tuple[int, int] | None = None,
     repeats: int = 3,
     clock: Callable[[], float] = time.perf_counter,
 ) -> dict[str, float]:
@@ -44,13 +47,14 @@ def time_kernels(
     Args:
         model: the network, already on ``device`` (its execution is restored afterwards).
         device: where it runs.
+        input_size: (height, width) of the frame; default: the model config's.
         repeats: timed calls per kernel.
         clock: the timer (injected by tests).
 
     Returns:
         ``{kernel: seconds}`` for every kernel of `taptr.model.ops.KERNELS`.
     """
-    height, width = model.config.input_size if model.config else (256, 256)
+    height, width = input_size or (model.config.input_size if model.config else (256, 256))
     dtype = next(model.parameters()).dtype
     frame = torch.randn(1, 3, height, width, device=device, dtype=dtype)
     maps = model.input_projections(model.backbone(frame))
@@ -73,7 +77,12 @@ def time_kernels(
     return seconds
 
 
-def choose_kernel(model: TAPTR, device: torch.device, choice: str = "auto") -> Kernel:
+def choose_kernel(
+    model: TAPTR,
+    device: torch.device,
+    choice: str = "auto",
+    input_size: tuple[int, int] | None = None,
+) -> Kernel:
     """Sets the model's deformable-attention kernel for ``device``; returns the kernel.
 
     Args:
@@ -81,6 +90,7 @@ def choose_kernel(model: TAPTR, device: torch.device, choice: str = "auto") -> K
         device: where it runs.
         choice: ``auto`` (measure on accelerators, keep the execution's kernel on CPU),
             ``measure`` (measure on any device), or ``gather`` / ``grid_sample``.
+        input_size: (height, width) the model will see; default: the model config's.
 
     Raises:
         ValueError: for a choice not in `CHOICES`.
@@ -91,7 +101,7 @@ def choose_kernel(model: TAPTR, device: torch.device, choice: str = "auto") -> K
     if choice == "auto" and device.type == "cpu":
         kernel = model.execution.kernel
     elif choice in ("auto", "measure"):
-        seconds = time_kernels(model, device)
+        seconds = time_kernels(model, device, input_size=input_size)
         kernel = min(seconds, key=seconds.__getitem__)
     if kernel != model.execution.kernel:
         model.set_execution(dataclasses.replace(model.execution, kernel=kernel))
