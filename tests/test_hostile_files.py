@@ -31,7 +31,8 @@ from taptr.data.check import check_kubric_folder
 from taptr.data.kubric import read_sequence, write_sequence
 from taptr.data.tapvid import iter_tapvid
 from taptr.io import limits
-from taptr.io.safe_pickle import PickleBombError, UnsafePickleError, load_npy, load_pickle
+from taptr.io.safe_npy import load_npy
+from taptr.io.safe_pickle import PickleBombError, UnsafePickleError, load_pickle
 from taptr.io.video import read_video, write_video
 from taptr.types import TrackingSample
 from tests import bombs

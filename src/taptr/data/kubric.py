@@ -26,7 +26,7 @@ import numpy as np
 from taptr.io import limits
 from taptr.io.atomic import atomic_path
 from taptr.io.image_guard import image_size
-from taptr.io.safe_pickle import load_npy
+from taptr.io.safe_npy import load_npy
 from taptr.types import TrackingSample
 
 FRAMES_DIR = "frames"

@@ -1,4 +1,4 @@
-"""A restricted, size-bounded unpickler for dataset files (TAP-Vid pickles, Kubric ``.npy``).
+"""A restricted, size-bounded unpickler for dataset files (TAP-Vid pickles; `.npy`: safe_npy).
 
 These files are pickles of numpy arrays in plain containers. Unpickling them with
 ``pickle.load`` or ``np.load(allow_pickle=True)`` would run any code a crafted file asks
@@ -24,11 +24,9 @@ import os
 import pickle
 import pickletools
 from pathlib import Path
-from tokenize import TokenError
 from typing import Any, BinaryIO, cast
 
 import numpy as np
-from numpy.lib import format as npy_format
 
 try:  # numpy >= 2 moved the pickle helpers to numpy._core
     from numpy._core.multiarray import scalar as _numpy_scalar
@@ -250,7 +248,8 @@ class _BoundedReader:
         return self._stream.tell()
 
 
-def _remaining(stream: BinaryIO) -> int:
+def remaining_bytes(stream: BinaryIO) -> int:
+    """Bytes between the stream's position and its end (the position is kept)."""
     start = stream.tell()
     end = stream.seek(0, os.SEEK_END)
     stream.seek(start)
@@ -298,7 +297,7 @@ def load_pickle_stream(stream: BinaryIO) -> Any:
         pickle.UnpicklingError, ValueError, EOFError, ...: the stream is not a pickle.
     """
     start = stream.tell()
-    size = _remaining(stream)
+    size = remaining_bytes(stream)
     scan_opcodes(stream, size)
     stream.seek(start)
     reader = cast(BinaryIO, _BoundedReader(stream, size))
@@ -340,7 +339,7 @@ _NOT_A_PICKLE = (
 )
 
 
-def _load_checked(stream: BinaryIO, path: Path, what: str) -> Any:
+def load_checked(stream: BinaryIO, path: Path, what: str) -> Any:
     """`load_pickle_stream` with every failure turned into a one-line error naming ``path``."""
     try:
         return load_pickle_stream(stream)
@@ -351,7 +350,8 @@ def _load_checked(stream: BinaryIO, path: Path, what: str) -> Any:
         raise ValueError(f"{path} {what} ({reason})") from None
 
 
-def _check_file(path: str | os.PathLike[str]) -> Path:
+def checked_file(path: str | os.PathLike[str]) -> Path:
+    """``path`` as a `Path`, once it is known to be a file within the ``file_bytes`` limit."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no such file: {path}")
@@ -369,64 +369,6 @@ def load_pickle(path: str | os.PathLike[str]) -> Any:
         ValueError: the file is not a readable pickle, or is larger than the ``file_bytes``
             limit (the message names it).
     """
-    path = _check_file(path)
+    path = checked_file(path)
     with path.open("rb") as stream:
-        return _load_checked(stream, path, "is not a readable pickle")
-
-
-def read_npy_header(stream: BinaryIO, path: Path) -> tuple[tuple[int, ...], np.dtype]:
-    """Shape and dtype of a ``.npy`` stream, checked against the bytes that follow.
-
-    Leaves the stream at the start of the data.
-
-    Raises:
-        ValueError: not a ``.npy`` file, or it declares more data than it holds.
-    """
-    try:
-        version = npy_format.read_magic(stream)
-        if version == (1, 0):
-            shape, _, dtype = npy_format.read_array_header_1_0(stream)
-        else:
-            shape, _, dtype = npy_format.read_array_header_2_0(stream)
-    except (ValueError, OverflowError, SyntaxError, TypeError, EOFError, TokenError) as error:
-        reason = str(error).strip().splitlines()[0] if str(error).strip() else "bad header"
-        raise ValueError(f"{path} is not a .npy file ({reason})") from None
-    if any(side < 0 for side in shape):
-        raise ValueError(f"{path}: the header declares a negative shape {shape}")
-    if not dtype.hasobject:
-        declared = math.prod(shape) * dtype.itemsize
-        held = _remaining(stream)
-        if declared > held:
-            raise ValueError(
-                f"{path}: the header declares a {'x'.join(map(str, shape)) or 'scalar'} "
-                f"{dtype} array ({declared:,} bytes) but the file holds {held:,} bytes of data"
-            )
-    return shape, dtype
-
-
-def load_npy(path: str | os.PathLike[str]) -> Any:
-    """Reads a ``.npy`` file; object arrays go through the restricted unpickler.
-
-    The header is checked before any data is read: a file declaring more bytes than it
-    holds is refused. ``np.save`` of a dict writes a 0-d object array holding a pickle of
-    the dict.
-
-    Returns:
-        The array, or the pickled object itself when the file holds a 0-d object array
-        (how ``np.save`` stores a dict).
-
-    Raises:
-        FileNotFoundError: the file does not exist.
-        UnsafePickleError: its pickled objects are not plain data or ask for too much memory.
-        ValueError: not a readable ``.npy`` file, or larger than the ``file_bytes`` limit.
-    """
-    path = _check_file(path)
-    with path.open("rb") as stream:
-        shape, dtype = read_npy_header(stream, path)
-        if not dtype.hasobject:
-            stream.seek(0)
-            return np.load(stream, allow_pickle=False)
-        array = _load_checked(stream, path, "holds an unreadable pickled object")
-    if isinstance(array, np.ndarray) and array.shape == () and shape == ():
-        return array.item()
-    return array
+        return load_checked(stream, path, "is not a readable pickle")
