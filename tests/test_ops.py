@@ -15,6 +15,7 @@ from taptr.model.ops import (
     projected_table,
     sample_levels,
 )
+from taptr.model.ops.gather import bilinear_corners
 
 
 def _bilinear_zero_padded(image: torch.Tensor, x: float, y: float) -> torch.Tensor:
@@ -253,3 +254,56 @@ def test_deform_attn_kernels_agree(generator):
             for kernel in ("grid_sample", "gather")
         ]
     torch.testing.assert_close(outputs[0], outputs[1])
+
+
+def _table(values: torch.Tensor, shapes, border: bool) -> torch.Tensor:
+    """(B, S, M, D) values as gather rows, with or without the zero border."""
+    return padded_table(values, shapes) if border else values.reshape(-1, values.shape[-1])
+
+
+def test_key_aware_without_the_border_equals_grid_sample(generator):
+    shapes, values, locations = _random_case(generator)
+    # and the far-border cases of the test above, on every level
+    edge = torch.tensor([[1.0, 1.0], [5.0, 5.0], [-3.0, 0.5], [1.0 + 0.5 / 3, 0.5]])
+    locations[:, :4] = edge.to(locations).view(1, 4, 1, 1, 1, 2)
+    queries = torch.randn(2, 5, 2, 3, dtype=torch.float64, generator=generator)
+    keys = torch.randn_like(values)
+    reference = key_aware_ms_deform_attn(queries, keys, values, shapes, locations)
+    for border in (True, False):
+        out, logits = gather_key_aware_attn(
+            queries,
+            _table(keys, shapes, border),
+            _table(values, shapes, border),
+            shapes,
+            locations,
+            border=border,
+        )
+        torch.testing.assert_close(out, reference[0])
+        torch.testing.assert_close(logits, reference[1])
+
+
+def test_borderless_corners_weigh_outside_corners_zero():
+    shapes = [(3, 4)]
+    # x = 0.1·4 − 0.5 = −0.1: only the right column is inside;
+    # y = 0.9·3 − 0.5 = 2.2: only the top row
+    rows, weights = bilinear_corners(
+        torch.tensor([0.1, 0.9], dtype=torch.float64).view(1, 1, 1, 1, 1, 2), shapes, border=False
+    )
+    assert rows.flatten().tolist() == [8, 8, 8, 8]  # every corner clamped onto (y 2, x 0)
+    torch.testing.assert_close(
+        weights.flatten(), torch.tensor([0.0, 0.8 * 0.9, 0.0, 0.0], dtype=torch.float64)
+    )
+
+
+def test_projected_table_without_the_border_is_the_projection(generator):
+    shapes = [(3, 4), (2, 2)]
+    memory = torch.randn(2, 16, 8, generator=generator)
+    projection = torch.nn.Linear(8, 8)
+    plain = projection(memory).detach().reshape(-1, 4)
+    with torch.no_grad():
+        torch.testing.assert_close(
+            projected_table(memory, projection, shapes, 2, border=False), plain
+        )
+    table = projected_table(memory, projection, shapes, 2, border=False)
+    assert table.requires_grad
+    torch.testing.assert_close(table, plain)

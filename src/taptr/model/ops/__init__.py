@@ -88,9 +88,10 @@ def key_aware_attn(
     """
     heads = locations.shape[2]
     if kernel == "gather":
-        keys = projected_table(memory, key_proj, spatial_shapes, heads)
-        values = projected_table(memory, value_proj, spatial_shapes, heads)
-        return gather_key_aware_attn(queries, keys, values, spatial_shapes, locations)
+        # two tables for a few hundred points: no border (the module doc of `gather`)
+        keys = projected_table(memory, key_proj, spatial_shapes, heads, border=False)
+        values = projected_table(memory, value_proj, spatial_shapes, heads, border=False)
+        return gather_key_aware_attn(queries, keys, values, spatial_shapes, locations, border=False)
     shape = (*memory.shape[:2], heads, -1)  # (B, S, M, D)
     return key_aware_ms_deform_attn(
         queries,

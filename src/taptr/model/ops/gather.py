@@ -4,12 +4,18 @@ Bilinear sampling is a weighted sum of four table rows per location. Folding the
 attention weights into the bilinear weights turns a whole deformable-attention output into
 one ``embedding_bag`` call over the rows of the value table, which is the projection output
 viewed as (B·S·M, D): no per-level channel-first copies and no large intermediate of
-sampled values. Each level is padded with a zero border (one cell before, two after, so
-that a location clamped onto the far border still has both corners inside) and locations
-further out are clamped onto the border, where every corner reads zero. This is exactly
-``grid_sample``'s zero padding with align_corners=False, so results equal
-`taptr.model.ops.ms_deform_attn` up to float rounding, and gradients flow to the values,
-the weights and the locations.
+sampled values. Both give ``grid_sample``'s zero padding with align_corners=False, so
+results equal `taptr.model.ops.ms_deform_attn` up to float rounding, and gradients flow to
+the values, the weights and the locations. Corners outside a level are handled one of two
+ways (``border``):
+
+- a zero border in the table (``border=True``): each level padded by one cell before and
+  two after, locations further out clamped onto it, where every corner reads zero. Building
+  the padded table costs a strided copy of the projection; the per-location work is small.
+  Best for the encoder, whose queries are as many as the table's rows.
+- weights set to zero (``border=False``): the table is the plain projection (one ``addmm``)
+  and every corner outside its level gets weight zero and a row clamped inside. Best for
+  the decoder, which builds ten tables per window for a few hundred points.
 """
 
 from __future__ import annotations
@@ -44,26 +50,41 @@ def padded_table(values: Tensor, spatial_shapes: list[tuple[int, int]]) -> Tenso
 
 
 def projected_table(
-    memory: Tensor, projection: nn.Linear, spatial_shapes: list[tuple[int, int]], heads: int
+    memory: Tensor,
+    projection: nn.Linear,
+    spatial_shapes: list[tuple[int, int]],
+    heads: int,
+    *,
+    border: bool = True,
 ) -> Tensor:
-    """`padded_table` of ``projection(memory)`` split into heads, built in one pass.
+    """``projection(memory)`` split into heads as gather rows, with or without the border.
 
-    Without gradients, the projection's matrix product is written straight into the padded
-    layout together with its bias (only the borders are zeroed), which saves the bias
-    broadcast, the padding and the concatenation copies of the plain formulation; with
-    gradients, the plain (differentiable) formulation is used.
+    Without gradients, the padded table is built in one pass: the projection's matrix
+    product is written straight into the padded layout together with its bias (only the
+    borders are zeroed), which saves the bias broadcast, the padding and the concatenation
+    copies of the plain formulation; with gradients, the plain (differentiable) one is used.
 
     Args:
         memory: (B, S, C) tokens.
         projection: the value or key projection (C → C).
         spatial_shapes: (H_l, W_l) per level.
         heads: attention heads M.
+        border: `padded_table`'s zero border (see the module docstring); without it the
+            table is the projection's rows, (B · S · M, C / M).
 
     Returns:
-        (B · Σ(H_l + 3)(W_l + 3) · M, C / M).
+        (B · Σ(H_l + 3)(W_l + 3) · M, C / M), or (B · S · M, C / M) without the border.
     """
     batch, tokens, channels = memory.shape
-    if torch.is_grad_enabled() and (memory.requires_grad or projection.weight.requires_grad):
+    differentiable = torch.is_grad_enabled() and (
+        memory.requires_grad or projection.weight.requires_grad
+    )
+    if not border:
+        if differentiable:
+            return projection(memory).reshape(-1, channels // heads)
+        rows = torch.addmm(projection.bias, memory.reshape(-1, channels), projection.weight.t())
+        return rows.view(-1, channels // heads)
+    if differentiable:
         return padded_table(projection(memory).view(batch, tokens, heads, -1), spatial_shapes)
     product = torch.matmul(memory, projection.weight.t())  # (B, S, C) without the bias
     padded_sizes = [(h + 3) * (w + 3) for h, w in spatial_shapes]
@@ -95,61 +116,87 @@ def interleaved_sizes(spatial_shapes: list[tuple[int, int]], points: int, like: 
 
 
 def bilinear_corners(
-    locations: Tensor, spatial_shapes: list[tuple[int, int]], scale: Tensor | None = None
+    locations: Tensor,
+    spatial_shapes: list[tuple[int, int]],
+    scale: Tensor | None = None,
+    *,
+    border: bool = True,
 ) -> tuple[Tensor, Tensor]:
-    """Rows of the padded table and weights of the four corners of every location.
+    """Rows and weights of the four corners of every location.
 
     Args:
         locations: (B, Q, M, L, P, 2) locations (x, y) in [0, 1] of each level.
         spatial_shapes: (H_l, W_l) per level.
         scale: optional (B, Q, M, L, P) factor folded into the weights.
+        border: rows into a `padded_table` (True), or into a table without the border
+            with zero weight on corners outside their level (False).
 
     Returns:
-        rows (B, Q, M, L·P, 4) into `padded_table`, and weights of the same shape, corners
-        ordered (y0 x0, y0 x1, y1 x0, y1 x1).
+        rows (B, Q, M, L·P, 4) and weights of the same shape, corners ordered
+        (y0 x0, y0 x1, y1 x0, y1 x1).
     """
-    batch, queries, heads, levels, points, _ = locations.shape
-    device = locations.device
-    padded = [(h + 3) * (w + 3) for h, w in spatial_shapes]
+    batch, _, heads, levels, points, _ = locations.shape
+    row_lengths = [w + 3 if border else w for _, w in spatial_shapes]
+    level_rows = [(h + 3) * (w + 3) if border else h * w for h, w in spatial_shapes]
     # int32 rows halve the traffic of the index arithmetic while the table fits
-    index = torch.int32 if batch * sum(padded) * heads < 2**31 else torch.int64
+    index = torch.int32 if batch * sum(level_rows) * heads < 2**31 else torch.int64
     sizes = interleaved_sizes(spatial_shapes, points, locations)  # (L·P·2)
     pixels = locations.flatten(3) * sizes - 0.5  # (B, Q, M, L·P·2) in each level's pixels
-    # beyond one cell outside, every corner is in the zero border: clamp onto it
+    # beyond one cell outside, every corner is outside: clamp there (bounds the integers)
     pixels = torch.minimum(pixels, sizes).clamp_(min=-1.0)
     corner = pixels.floor()
     frac = (pixels - corner).view(locations.shape)
-    cell = corner.to(index).add_(1).view(locations.shape)  # padded coordinates of top-left
-    starts = torch.tensor([sum(padded[:i]) for i in range(levels)], device=device, dtype=index)
-    row_length = torch.tensor([w + 3 for _, w in spatial_shapes], device=device, dtype=index)
-    starts, row_length = starts.view(levels, 1), row_length.view(levels, 1)
-    # table row of (image b, token s, head m) is (b·S_pad + s)·M + m
-    image_head = torch.arange(batch, device=device, dtype=index).view(batch, 1, 1, 1, 1)
-    image_head = image_head * (sum(padded) * heads)
-    image_head = image_head + torch.arange(heads, device=device, dtype=index).view(
-        1, 1, heads, 1, 1
-    )
-    top_left = image_head + (starts + cell[..., 1] * row_length + cell[..., 0]) * heads
+    fx, fy = frac[..., 0], frac[..., 1]
+    gx, gy = 1 - fx, 1 - fy
+    if border:
+        low = high = corner.to(index).add_(1).view(locations.shape)  # padded coordinates
+    else:
+        last = sizes - 1
+        inside_low = ((corner >= 0) & (corner <= last)).view(locations.shape)
+        inside_high = (corner < last).view(locations.shape)  # corner + 1 in [0, size − 1]
+        high = torch.minimum(corner + 1, last).to(index).view(locations.shape)
+        low = torch.minimum(corner.clamp_(min=0.0), last).to(index).view(locations.shape)
+        gx, fx = gx * inside_low[..., 0], fx * inside_high[..., 0]
+        gy, fy = gy * inside_low[..., 1], fy * inside_high[..., 1]
+    starts = [sum(level_rows[:i]) for i in range(levels)]
+    starts_t = torch.tensor(starts, device=locations.device, dtype=index).view(levels, 1)
+    lengths = torch.tensor(row_lengths, device=locations.device, dtype=index).view(levels, 1)
+    # table row of (image b, token s, head m) is (b·S_t + s)·M + m
+    image_head = torch.arange(batch, device=locations.device, dtype=index).view(batch, 1, 1, 1, 1)
+    image_head = image_head * (sum(level_rows) * heads) + torch.arange(
+        heads, device=locations.device, dtype=index
+    ).view(1, 1, heads, 1, 1)
+    top_left = image_head + (starts_t + low[..., 1] * lengths + low[..., 0]) * heads
     # corners are written into strided slices: stacking them costs several times more
     rows = top_left.new_empty(*top_left.shape, 4)  # (B, Q, M, L, P, 4)
     rows[..., 0] = top_left
-    torch.add(top_left, heads, out=rows[..., 1])
-    torch.add(top_left, row_length * heads, out=rows[..., 2])
-    torch.add(rows[..., 2], heads, out=rows[..., 3])
-    fx, fy = frac[..., 0], frac[..., 1]
-    gx, gy = 1 - fx, 1 - fy
+    if border:  # the other corners are the next cell and row, inside the border
+        torch.add(top_left, heads, out=rows[..., 1])
+        torch.add(top_left, lengths * heads, out=rows[..., 2])
+        torch.add(rows[..., 2], heads, out=rows[..., 3])
+    else:  # clamped cells: a far corner outside the level repeats the near one (weight 0)
+        right = (high[..., 0] - low[..., 0]) * heads
+        torch.add(top_left, right, out=rows[..., 1])
+        below = image_head + (starts_t + high[..., 1] * lengths + low[..., 0]) * heads
+        rows[..., 2] = below
+        torch.add(below, right, out=rows[..., 3])
+    weights = _corner_weights(fx, fy, gx, gy, scale)
+    shape = (*locations.shape[:3], levels * points, 4)
+    return rows.view(shape), weights.view(shape)
+
+
+def _corner_weights(fx: Tensor, fy: Tensor, gx: Tensor, gy: Tensor, scale: Tensor | None) -> Tensor:
+    """The four bilinear products (y0 x0, y0 x1, y1 x0, y1 x1), times ``scale``: (..., 4)."""
     if scale is not None:
         fy, gy = fy * scale, gy * scale
     if torch.is_grad_enabled() and (fx.requires_grad or fy.requires_grad):
-        weights = torch.stack((gy * gx, gy * fx, fy * gx, fy * fx), -1)  # out= has no autograd
-    else:
-        weights = fx.new_empty(*fx.shape, 4)
-        torch.mul(gy, gx, out=weights[..., 0])
-        torch.mul(gy, fx, out=weights[..., 1])
-        torch.mul(fy, gx, out=weights[..., 2])
-        torch.mul(fy, fx, out=weights[..., 3])
-    shape = (batch, queries, heads, levels * points, 4)
-    return rows.view(shape), weights.view(shape)
+        return torch.stack((gy * gx, gy * fx, fy * gx, fy * fx), -1)  # out= has no autograd
+    weights = fx.new_empty(*fx.shape, 4)
+    torch.mul(gy, gx, out=weights[..., 0])
+    torch.mul(gy, fx, out=weights[..., 1])
+    torch.mul(fy, gx, out=weights[..., 2])
+    torch.mul(fy, fx, out=weights[..., 3])
+    return weights
 
 
 def gather_sum(table: Tensor, rows: Tensor, weights: Tensor) -> Tensor:
@@ -195,22 +242,25 @@ def gather_key_aware_attn(
     value_table: Tensor,
     spatial_shapes: list[tuple[int, int]],
     locations: Tensor,
+    *,
+    border: bool = True,
 ) -> tuple[Tensor, Tensor]:
-    """Key-aware deformable attention; `key_aware_ms_deform_attn` on padded tables.
+    """Key-aware deformable attention; `key_aware_ms_deform_attn` on gather tables.
 
     Args:
         queries: (B, Q, M, D) projected queries.
-        key_table: (B · S_pad · M, D) keys, see `padded_table` / `projected_table`.
-        value_table: (B · S_pad · M, D) values.
+        key_table: (B · S_t · M, D) keys, see `padded_table` / `projected_table`.
+        value_table: (B · S_t · M, D) values.
         spatial_shapes: (H_l, W_l) per level.
         locations: (B, Q, M, L, P, 2) in [0, 1].
+        border: whether the tables have the zero border (`bilinear_corners`).
 
     Returns:
         output (B, Q, M·D) and pre-softmax logits (B, Q, M, L, P).
     """
     batch, num_queries, heads, channels = queries.shape
     levels, points = locations.shape[3:5]
-    rows, corner_weights = bilinear_corners(locations, spatial_shapes)
+    rows, corner_weights = bilinear_corners(locations, spatial_shapes, border=border)
     # sampled keys are (B, Q, M, L·P, D): bound their memory by taking queries in chunks
     chunk = max(1, CHUNK_ELEMENTS // (batch * heads * levels * points * channels))
     logits = (
