@@ -13,7 +13,7 @@ import taptr
 from taptr.api.online import OnlineTracker
 from taptr.api.predictor import Predictor
 from taptr.cli.main import main
-from taptr.cli.model_options import load_predictor
+from taptr.cli.model_options import KERNEL_CHOICES, add_model_arguments, load_predictor
 from taptr.export import compile as compile_module
 from taptr.io.tracks import load_tracks_npz
 from taptr.io.video import write_video
@@ -115,22 +115,20 @@ def test_a_named_kernel_is_set_and_an_unknown_one_refused(model, video):
         Predictor(copy.deepcopy(model), device="cpu", kernel="fastest")
 
 
-def _model_args(**changes) -> argparse.Namespace:
-    args = dict(
-        checkpoint="tiny",
-        device="cpu",
-        input_size=None,
-        context_points=None,
-        dtype="float32",
-        kernel="auto",
-        compile=False,
-    )
-    return argparse.Namespace(**{**args, **changes})
+def _model_args(*options: str) -> argparse.Namespace:
+    """The model options as the commands parse them."""
+    parser = argparse.ArgumentParser()
+    add_model_arguments(parser)
+    return parser.parse_args(["--checkpoint", "tiny", "--device", "cpu", *options])
+
+
+def test_the_clis_kernel_choices_are_the_models():
+    assert KERNEL_CHOICES == kernel_choice.CHOICES
 
 
 def test_model_options_reach_the_predictor(monkeypatch, video):
     assert load_predictor(_model_args()).autocast is None
-    predictor = load_predictor(_model_args(dtype="bfloat16", kernel="grid_sample"))
+    predictor = load_predictor(_model_args("--dtype", "bfloat16", "--kernel", "grid_sample"))
     assert predictor.autocast == torch.bfloat16
     assert predictor.model.execution.kernel == "grid_sample"
 
@@ -142,7 +140,7 @@ def test_model_options_reach_the_predictor(monkeypatch, video):
         return original(model, backend="eager")  # traced by dynamo, no code generated
 
     monkeypatch.setattr(compile_module, "compile_model", eager_compile)
-    predictor = load_predictor(_model_args(compile=True))
+    predictor = load_predictor(_model_args("--compile"))
     [(model, before)] = compiled
     assert model is predictor.model
     plain = Predictor(before, device="cpu")

@@ -15,6 +15,10 @@ import numpy as np
 if TYPE_CHECKING:  # keeps torch out of the import of the data readers and the CLI
     from torch import Tensor
 
+AUTOCAST_TYPES = ("float32", "bfloat16", "float16")
+"""Names of the types a model can run in under autocast (`taptr.api.predictor.autocast_type`);
+float32 runs without autocast. Here, without torch, for the CLI's choices."""
+
 
 @dataclass
 class TrackingSample:

@@ -33,12 +33,23 @@ from taptr.model.frames import EncodedFrames
 from taptr.model.kernel_choice import choose_kernel
 from taptr.model.sliding_window import run_windows
 from taptr.model.taptr import TAPTR, normalize_frames
-from taptr.types import TrackingResult
+from taptr.types import AUTOCAST_TYPES, TrackingResult
 from taptr.windows import window_ranges
 
 logger = logging.getLogger(__name__)
 
 VideoInput = np.ndarray | Tensor | str | os.PathLike
+
+
+def autocast_type(name: str) -> torch.dtype | None:
+    """The ``autocast`` of a `taptr.types.AUTOCAST_TYPES` name (``float32``: None, no autocast).
+
+    Raises:
+        ValueError: for another name; the message lists the known ones.
+    """
+    if name not in AUTOCAST_TYPES:
+        raise ValueError(f"unknown dtype {name!r}; expected one of {', '.join(AUTOCAST_TYPES)}")
+    return None if name == "float32" else getattr(torch, name)
 
 
 class Predictor:
@@ -95,7 +106,6 @@ class Predictor:
         config = model.config
         height, width = input_size or (config.input_size if config else (512, 512))
         self.input_size: tuple[int, int] = (int(height), int(width))
-        self.kernel = choose_kernel(self.model, self.device, kernel, self.input_size)
         self.resize = config.resize if config else "bilinear"
         if context_points is None:
             context_points = config.context_points if config else 0
@@ -109,6 +119,8 @@ class Predictor:
         if not 0 < visibility_threshold < 1:
             raise ValueError(f"visibility_threshold must lie in (0, 1), got {visibility_threshold}")
         self.visibility_threshold = visibility_threshold
+        # last: on accelerators this times the model, which only a valid predictor needs
+        choose_kernel(self.model, self.device, kernel, self.input_size)
 
     @classmethod
     def from_pretrained(

@@ -34,7 +34,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     """Registers the subcommand."""
     from taptr.eval.datasets import DATASETS
     from taptr.eval.metrics import QUERY_MODES
-    from taptr.eval.runner import DTYPES, PROTOCOLS, TRACKERS
+    from taptr.eval.runner import PROTOCOLS, TRACKERS
+    from taptr.types import AUTOCAST_TYPES
 
     parser = subparsers.add_parser(
         "eval",
@@ -88,7 +89,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument(
         "--dtype",
-        choices=DTYPES,
+        choices=AUTOCAST_TYPES,
         default="float32",
         help="standard protocol: run the model under autocast in this type (weights in "
         "float32; for GPUs) (default: float32, no autocast)",

@@ -13,14 +13,12 @@ from taptr.cli.options import (
     check_device,
     check_input_size,
 )
+from taptr.types import AUTOCAST_TYPES
 
 if TYPE_CHECKING:
     from taptr.api.predictor import Predictor
 
-AUTOCAST_TYPES = ("float32", "bfloat16", "float16")
-"""``--dtype`` choices; float32 runs without autocast."""
-
-KERNEL_CHOICES = ("auto", "measure", "gather", "grid_sample")
+KERNEL_CHOICES = ("auto", "measure", "grid_sample", "gather")
 """``--kernel`` choices (`taptr.model.kernel_choice.CHOICES`; here so --help needs no torch)."""
 
 
@@ -93,18 +91,15 @@ def check_model_arguments(args: argparse.Namespace) -> None:
 
 def load_predictor(args: argparse.Namespace) -> Predictor:
     """The predictor the model arguments describe."""
-    import torch
-
-    from taptr.api.predictor import Predictor
+    from taptr.api.predictor import Predictor, autocast_type
 
     size = tuple(args.input_size) if args.input_size else None
-    autocast = None if args.dtype == "float32" else getattr(torch, args.dtype)
     predictor = Predictor.from_pretrained(
         args.checkpoint,
         device=args.device,
         input_size=size,
         context_points=args.context_points,
-        autocast=autocast,
+        autocast=autocast_type(args.dtype),
         kernel=args.kernel,
     )
     if args.compile:

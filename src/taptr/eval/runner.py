@@ -32,12 +32,12 @@ from taptr.eval.protocols import (
 )
 from taptr.eval.report import build_report, package_versions, write_report
 from taptr.eval.sharding import SINGLE_PROCESS, Shard, gather, process_group, resolve_device
+from taptr.types import AUTOCAST_TYPES
 
 logger = logging.getLogger(__name__)
 
 TRACKERS = ("taptr", "static", "lk")
 PROTOCOLS = ("standard", "official")
-DTYPES = ("float32", "bfloat16", "float16")
 
 
 @dataclass(frozen=True)
@@ -83,7 +83,7 @@ class EvalConfig:
             ("mode", self.mode, QUERY_MODES),
             ("tracker", self.tracker, TRACKERS),
             ("protocol", self.protocol, PROTOCOLS),
-            ("dtype", self.dtype, DTYPES),
+            ("dtype", self.dtype, AUTOCAST_TYPES),
         ):
             if value not in allowed:
                 raise ValueError(f"unknown {name} {value!r}; expected one of {', '.join(allowed)}")
@@ -116,8 +116,7 @@ def build_protocol(config: EvalConfig, device: str) -> EvalProtocol:
         from taptr.eval.baselines import LucasKanadeTracker
 
         return StandardProtocol(LucasKanadeTracker())
-    import torch
-
+    from taptr.api.predictor import autocast_type
     from taptr.eval.predictor_tracker import PredictorTracker
 
     tracker = PredictorTracker.from_pretrained(
@@ -126,7 +125,7 @@ def build_protocol(config: EvalConfig, device: str) -> EvalProtocol:
         device=device,
         context_points=config.context_points,
         points_per_call=config.points_per_call,
-        autocast=None if config.dtype == "float32" else getattr(torch, config.dtype),
+        autocast=autocast_type(config.dtype),
     )
     return StandardProtocol(tracker)
 

@@ -45,7 +45,8 @@ def time_kernels(
     the kernel. Each kernel runs once to warm up, then the best of ``repeats`` is kept.
 
     Args:
-        model: the network, already on ``device`` (its execution is restored afterwards).
+        model: the network, already on ``device`` (its execution is left as it is: each
+            kernel's execution is handed to the encoder).
         device: where it runs.
         input_size: (height, width) of the frame; default: the model config's.
         repeats: timed calls per kernel.
@@ -58,22 +59,18 @@ def time_kernels(
     dtype = next(model.parameters()).dtype
     frame = torch.randn(1, 3, height, width, device=device, dtype=dtype)
     maps = model.input_projections(model.backbone(frame))
-    original = model.execution
     seconds = {}
-    try:
-        for kernel in KERNELS:
-            execution = dataclasses.replace(original, kernel=kernel)
+    for kernel in KERNELS:
+        execution = dataclasses.replace(model.execution, kernel=kernel)
+        model.encoder(maps, execution)
+        best = float("inf")
+        for _ in range(repeats):
+            _synchronize(device)
+            start = clock()
             model.encoder(maps, execution)
-            best = float("inf")
-            for _ in range(repeats):
-                _synchronize(device)
-                start = clock()
-                model.encoder(maps, execution)
-                _synchronize(device)
-                best = min(best, clock() - start)
-            seconds[kernel] = best
-    finally:
-        model.execution = original
+            _synchronize(device)
+            best = min(best, clock() - start)
+        seconds[kernel] = best
     return seconds
 
 
