@@ -14,15 +14,18 @@ compared with the official outputs. Writes benchmarks/results/precision-DEVICE.j
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
-FIXTURES = ROOT / "tests" / "fixtures"
+sys.path.insert(0, str(ROOT))  # the golden fixtures' helpers live with the tests
+
+from tests.helpers import FIXTURES, golden_inputs, seed1_official_weights  # noqa: E402
+
 RESULTS = Path(__file__).resolve().parent / "results"
 CASES = ("v2_small_nonsquare", "v2_long")
 TYPES = {"bfloat16": torch.bfloat16, "float16": torch.float16}
@@ -34,15 +37,10 @@ def seed1_model(device: str):
 
     import taptr
 
-    spec = importlib.util.spec_from_file_location("make_weights", FIXTURES / "make_weights.py")
-    make_weights = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(make_weights)
-    keys = make_weights.read_key_list(FIXTURES / "official-state-dict.txt")
-    arrays, _ = make_weights.make_state_dict(keys, seed=1)
-    official = {"module." + k: torch.from_numpy(v) for k, v in arrays.items()}
     with tempfile.TemporaryDirectory() as folder:
         path = Path(folder) / "taptrv2_seed1.pth"
-        torch.save({"ema_model": official}, path)  # laid out as the authors' release
+        # laid out as the authors' release
+        torch.save({"ema_model": seed1_official_weights("official-state-dict.txt")}, path)
         model = taptr.load_checkpoint(path)
     return model.to(device).eval()
 
@@ -50,15 +48,8 @@ def seed1_model(device: str):
 def run_case(model, golden: dict, device: str, autocast: torch.dtype | None) -> dict:
     """Positions (N, T, 2) normalised and visibility logits (N, T) of one golden case."""
     import taptr
-    from taptr.model.taptr import normalize_frames
 
-    video = normalize_frames(torch.from_numpy(golden["in_video_u8"]).float() / 255).to(device)
-    inputs = (
-        video,
-        torch.from_numpy(golden["in_query_t"]).to(device),
-        torch.from_numpy(golden["in_query_xy_norm"]).to(device),
-        torch.from_numpy(golden["in_query_label"]).to(device),
-    )
+    inputs = [x.to(device) for x in golden_inputs(golden)]
     with torch.no_grad(), torch.autocast(device, dtype=autocast, enabled=autocast is not None):
         out = taptr.official_forward(model, *inputs)
     positions = out["positions"].float().transpose(0, 1).cpu().numpy()

@@ -10,7 +10,7 @@ import pytest
 import torch
 from hypothesis import HealthCheck, settings
 
-from tests.helpers import FIXTURES
+from tests.helpers import seed1_official_weights
 
 if os.environ.get("PYTEST_XDIST_WORKER"):
     torch.set_num_threads(1)  # two workers on two cores: one thread each
@@ -51,37 +51,16 @@ def tiny_model():
     return build_model("tiny").eval()
 
 
-def _make_weights_module():
-    spec = importlib.util.spec_from_file_location("make_weights", FIXTURES / "make_weights.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def _seed1_weights(key_list_name: str, fingerprint: str) -> dict[str, torch.Tensor]:
-    make_weights = _make_weights_module()
-    key_list = make_weights.read_key_list(FIXTURES / key_list_name)
-    state_dict, _ = make_weights.make_state_dict(key_list, seed=1)
-    assert make_weights.fingerprint(state_dict) == fingerprint
-    return {"module." + k: torch.from_numpy(v) for k, v in state_dict.items()}
-
-
 @pytest.fixture(scope="session")
 def official_state_dict() -> dict[str, torch.Tensor]:
     """The seed-1 official TAPTRv2 weights of the golden fixtures (``module.`` keys)."""
-    return _seed1_weights(
-        "official-state-dict.txt",
-        "3e475c2cad6f199fecbb3458d98eb67acc110c1b53ae1c02c6f3a2e88fe67d72",
-    )
+    return seed1_official_weights("official-state-dict.txt")
 
 
 @pytest.fixture(scope="session")
 def official_v1_checkpoint(tmp_path_factory) -> Path:
     """The seed-1 official TAPTR v1 weights, laid out as the authors' release."""
-    weights = _seed1_weights(
-        "official-v1-state-dict.txt",
-        "002c0715433fe8d9274a2a13fbae9617698ab8b9b8401b38211ca3dbe3f05c3c",
-    )
+    weights = seed1_official_weights("official-v1-state-dict.txt")
     path = tmp_path_factory.mktemp("official_v1") / "taptrv1_seed1.pth"
     torch.save({"ema_model": weights, "epoch": 0}, path)
     return path

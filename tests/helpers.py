@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import subprocess
 import sys
@@ -20,6 +21,55 @@ def load_golden(case: str) -> dict[str, np.ndarray]:
     """A compact golden fixture (see scripts/compact_golden.py)."""
     with np.load(FIXTURES / f"{case}.npz") as data:
         return {k: data[k] for k in data.files}
+
+
+SEED1_FINGERPRINTS = {
+    "official-state-dict.txt": "3e475c2cad6f199fecbb3458d98eb67acc110c1b53ae1c02c6f3a2e88fe67d72",
+    "official-v1-state-dict.txt": (
+        "002c0715433fe8d9274a2a13fbae9617698ab8b9b8401b38211ca3dbe3f05c3c"
+    ),
+}
+"""Fingerprints of the seed-1 weights the golden fixtures were made with, by key list."""
+
+
+def seed1_official_weights(key_list_name: str) -> dict[str, torch.Tensor]:
+    """The golden fixtures' seed-1 official weights (``module.`` keys) for a key list."""
+    spec = importlib.util.spec_from_file_location("make_weights", FIXTURES / "make_weights.py")
+    make_weights = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(make_weights)
+    key_list = make_weights.read_key_list(FIXTURES / key_list_name)
+    state_dict, _ = make_weights.make_state_dict(key_list, seed=1)
+    assert make_weights.fingerprint(state_dict) == SEED1_FINGERPRINTS[key_list_name]
+    return {"module." + k: torch.from_numpy(v) for k, v in state_dict.items()}
+
+
+def golden_inputs(golden: dict[str, np.ndarray], dtype: torch.dtype = torch.float32):
+    """`taptr.official_forward`'s inputs of a golden case: video, start frames, xy, labels."""
+    from taptr.model.taptr import normalize_frames
+
+    video = normalize_frames(torch.from_numpy(golden["in_video_u8"]).float() / 255)
+    return (
+        video.to(dtype),
+        torch.from_numpy(golden["in_query_t"]),
+        torch.from_numpy(golden["in_query_xy_norm"]).to(dtype),
+        torch.from_numpy(golden["in_query_label"]),
+    )
+
+
+def float64_tiny_predictor():
+    """A seeded tiny model's predictor in float64 (32 × 48 input): in float64 the different
+    ways of running a video (per frame or per window, forwards or reversed) agree to rounding,
+    so their results can be compared exactly."""
+    import taptr
+
+    torch.manual_seed(0)
+    model = taptr.build_model("tiny")
+    return taptr.Predictor(model, input_size=(32, 48), device="cpu", dtype=torch.float64)
+
+
+def noise_video(frames: int, seed: int = 0) -> np.ndarray:
+    """(frames, 40, 56, 3) uint8 uniform noise."""
+    return (np.random.default_rng(seed).random((frames, 40, 56, 3)) * 255).astype(np.uint8)
 
 
 def tiny_v1(**changes) -> ModelConfig:

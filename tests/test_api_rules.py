@@ -7,23 +7,15 @@ import re
 
 import numpy as np
 import pytest
-import torch
 
-import taptr
 from taptr.api.online import OnlineTracker
 from taptr.eval.trackers import track_both_ways
+from tests.helpers import float64_tiny_predictor, noise_video
 
 
 @pytest.fixture(scope="module")
 def predictor():
-    torch.manual_seed(0)
-    # float64: the two ways of running the reversed pass agree to rounding
-    model = taptr.build_model("tiny")
-    return taptr.Predictor(model, input_size=(32, 48), device="cpu", dtype=torch.float64)
-
-
-def _video(frames: int, seed: int = 0) -> np.ndarray:
-    return (np.random.default_rng(seed).random((frames, 40, 56, 3)) * 255).astype(np.uint8)
+    return float64_tiny_predictor()
 
 
 BAD_QUERIES = [
@@ -44,7 +36,7 @@ BAD_QUERIES = [
 
 @pytest.mark.parametrize("queries", BAD_QUERIES)
 def test_stream_and_predictor_reject_bad_queries_alike(predictor, queries):
-    video = _video(6)
+    video = noise_video(6)
     with pytest.raises(ValueError) as offline:
         predictor.track(video, queries)
     online = OnlineTracker(predictor)
@@ -57,14 +49,14 @@ def test_stream_and_predictor_share_the_point_limit(predictor, monkeypatch):
     monkeypatch.setenv("TAPTR_MAX_POINTS", "2")
     queries = np.array([[0, 1, 1], [1, 2, 2], [2, 3, 3]], np.float32)
     with pytest.raises(ValueError) as offline:
-        predictor.track(_video(6), queries)
+        predictor.track(noise_video(6), queries)
     online = OnlineTracker(predictor)
     with pytest.raises(ValueError, match=re.escape(str(offline.value))):
         online.add_queries(online.start(num_frames=6, frame_size=(40, 56)), queries)
 
 
 def test_eval_both_ways_equals_predictor_backward(predictor):
-    video = _video(13, seed=4)
+    video = noise_video(13, seed=4)
     queries = np.array([[0, 10, 20], [5, 55, 39], [12, 5.5, 5], [7, 30, 12.25]], np.float64)
 
     def forward_only(frames: np.ndarray, pass_queries: np.ndarray):

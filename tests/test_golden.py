@@ -9,8 +9,7 @@ import pytest
 import torch
 
 import taptr
-from taptr.model.taptr import normalize_frames
-from tests.helpers import load_golden
+from tests.helpers import golden_inputs, load_golden
 
 CASES = ["v2_small_nonsquare", "v2_long"]
 
@@ -18,16 +17,6 @@ CASES = ["v2_small_nonsquare", "v2_long"]
 @pytest.fixture(scope="module")
 def official_model(official_checkpoint):
     return taptr.load_checkpoint(official_checkpoint)
-
-
-def _inputs(golden, dtype=torch.float32):
-    video = normalize_frames(torch.from_numpy(golden["in_video_u8"]).float() / 255)
-    return (
-        video.to(dtype),
-        torch.from_numpy(golden["in_query_t"]),
-        torch.from_numpy(golden["in_query_xy_norm"]).to(dtype),
-        torch.from_numpy(golden["in_query_label"]),
-    )
 
 
 def _point_major(x: torch.Tensor) -> np.ndarray:
@@ -39,7 +28,7 @@ def _point_major(x: torch.Tensor) -> np.ndarray:
 def test_outputs_match_official_float32(official_model, case, execution):
     golden = load_golden(case)
     model = copy.deepcopy(official_model).set_execution(execution)
-    out = taptr.official_forward(model, *_inputs(golden))
+    out = taptr.official_forward(model, *golden_inputs(golden))
     positions, logits = _point_major(out["positions"]), _point_major(out["visibility_logits"])
     assert np.abs(positions - golden["out_pred_xy_norm"]).max() <= 3e-5
     assert np.abs(logits - golden["out_vis_logits"]).max() <= 3e-5
@@ -72,7 +61,7 @@ def test_outputs_match_official_float32(official_model, case, execution):
 def test_outputs_match_official_float64(official_model, case):
     golden = load_golden(case)
     double = copy.deepcopy(official_model).double()
-    out = taptr.official_forward(double, *_inputs(golden, torch.float64))
+    out = taptr.official_forward(double, *golden_inputs(golden, torch.float64))
     # everything in float64 against the official float64 run: within 1e-6 (README of the fixtures)
     assert np.abs(_point_major(out["positions"]) - golden["f64_out_pred_xy_norm"]).max() <= 1e-6
     assert (
@@ -82,7 +71,7 @@ def test_outputs_match_official_float64(official_model, case):
 
 def test_intermediate_features_match(official_model):
     golden = load_golden("v2_small_nonsquare")
-    video, starts, xy, _ = _inputs(golden)
+    video, starts, xy, _ = golden_inputs(golden)
     with torch.no_grad():
         frame0 = video[0, :1]
         maps = official_model.backbone(frame0)

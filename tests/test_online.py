@@ -6,20 +6,13 @@ import numpy as np
 import pytest
 import torch
 
-import taptr
 from taptr.api.online import OnlineTracker
+from tests.helpers import float64_tiny_predictor, noise_video
 
 
 @pytest.fixture(scope="module")
 def predictor():
-    torch.manual_seed(0)
-    # float64: per-frame and per-window encodings agree to rounding, so streams can be exact
-    model = taptr.build_model("tiny")
-    return taptr.Predictor(model, input_size=(32, 48), device="cpu", dtype=torch.float64)
-
-
-def _video(frames: int, seed: int = 0) -> np.ndarray:
-    return (np.random.default_rng(seed).random((frames, 40, 56, 3)) * 255).astype(np.uint8)
+    return float64_tiny_predictor()
 
 
 def _stream(online, state, video, chunk=1):
@@ -41,7 +34,7 @@ QUERIES = np.array([[0, 10, 20], [3, 55, 39], [6, 5, 5]], np.float32)
     ("frames", "declare", "chunk"), [(20, False, 1), (9, False, 3), (5, False, 2), (50, True, 1)]
 )
 def test_stream_equals_offline(predictor, frames, declare, chunk):
-    video = _video(frames)
+    video = noise_video(frames)
     queries = QUERIES.copy()
     queries[:, 0] = np.minimum(queries[:, 0], frames - 1)
     offline = predictor.track(video, queries)
@@ -55,7 +48,7 @@ def test_stream_equals_offline(predictor, frames, declare, chunk):
 
 
 def test_point_added_on_the_newest_frame_equals_offline(predictor):
-    video = _video(24, seed=1)
+    video = noise_video(24, seed=1)
     offline = predictor.track(video, QUERIES)
     online = OnlineTracker(predictor)
     state = online.start(frame_size=(40, 56))
@@ -75,7 +68,7 @@ def test_memory_is_bounded_by_the_window(predictor):
     online = OnlineTracker(predictor)
     state = online.start(frame_size=(40, 56))
     online.add_queries(state, [[0, 10, 10]])
-    video = _video(60, seed=2)
+    video = noise_video(60, seed=2)
     held, delays = [], []
     for frame in range(60):
         update = online.step(state, video[frame])
@@ -88,7 +81,7 @@ def test_memory_is_bounded_by_the_window(predictor):
 
 
 def test_remove_points(predictor):
-    video = _video(16, seed=3)
+    video = noise_video(16, seed=3)
     online = OnlineTracker(predictor)
     state = online.start(frame_size=(40, 56))
     ids = online.add_queries(state, QUERIES)
@@ -109,7 +102,7 @@ def test_errors(predictor):
     state = online.start()
     with pytest.raises(ValueError, match="frame size is unknown"):
         online.add_queries(state, QUERIES)
-    video = _video(12)
+    video = noise_video(12)
     for frame in range(12):
         online.step(state, video[frame])
     with pytest.raises(ValueError, match="after frame"):
