@@ -14,6 +14,7 @@ from taptr.cli.main import main as cli_main
 from taptr.data.synthetic import SyntheticConfig, write_dataset
 from taptr.train import data_parallel, loop
 from taptr.train.config import load_config
+from taptr.train.dataset import ClipDataset, training_sequences
 from taptr.train.forward import TrainingForward
 from taptr.train.losses import LossOutput, LossWeights
 from taptr.train.run_state import load_training_checkpoint
@@ -192,3 +193,17 @@ def test_resumed_schedule_follows_the_configured_milestones():
         resumed.step()  # step 6: a milestone at 6 drops the rate now
         after = expected * (0.1 if 6 in milestones else 1.0)
         assert optimizer.param_groups[0]["lr"] == pytest.approx(after)
+
+
+def test_extra_roots_mix_folders_into_one_clip_list(data, tmp_path):
+    config = _config(data, tmp_path, "data.extra_roots=" + json.dumps([str(data / "val")]))
+    assert config.data.extra_roots == (str(data / "val"),)
+    sequences = training_sequences(config.data)
+    assert [p.parent.name for p in sequences] == ["train"] * 4 + ["val"] * 2
+    clips = ClipDataset(sequences, config.data, config.model.input_size, config.seed)
+    assert len(clips.sequences) == 6
+    missing = _config(data, tmp_path, "data.extra_roots=" + json.dumps([str(tmp_path / "nope")]))
+    with pytest.raises(FileNotFoundError, match="nope"):
+        training_sequences(missing.data)
+    with pytest.raises(ValueError, match=r"data\.root is empty"):
+        training_sequences(_config(data, tmp_path, "data.root=").data)

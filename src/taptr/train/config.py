@@ -47,6 +47,8 @@ class DataConfig:
 
     Attributes:
         root: folder of Kubric-layout training sequences (`taptr.data.kubric`).
+        extra_roots: more folders of training sequences, mixed with ``root``'s into one
+            list that clips are drawn from (e.g. procedural and photo-textured videos).
         val_root: folder of held-out sequences; empty: no periodic evaluation.
         val_videos: held-out videos used per evaluation (the first ones, in order).
         frame_size: (height, width) frames are resized to when read, before augmentation.
@@ -69,6 +71,7 @@ class DataConfig:
     """
 
     root: str = ""
+    extra_roots: tuple[str, ...] = ()
     val_root: str = ""
     val_videos: int = 16
     frame_size: tuple[int, int] = (512, 512)

@@ -20,7 +20,7 @@ from torch.utils.data import DataLoader, Dataset, Sampler
 
 from taptr.data import augment
 from taptr.data.augment_spatial import pan_and_crop, random_flip, resize
-from taptr.data.kubric import read_sequence
+from taptr.data.kubric import list_sequences, read_sequence
 from taptr.data.sampling import (
     TrainingClip,
     collate,
@@ -37,6 +37,18 @@ MAX_ATTEMPTS = 20
 
 OFFICIAL_FRAME_SIZE = 512
 """Frame side the official augmentation sizes are given for."""
+
+
+def training_sequences(data: DataConfig) -> list[Path]:
+    """The sequence folders of ``data.root`` followed by those of each ``data.extra_roots``.
+
+    Raises:
+        ValueError: ``data.root`` is empty, or a folder holds no sequence.
+        FileNotFoundError: a folder does not exist.
+    """
+    if not data.root:
+        raise ValueError("data.root is empty: set it to a folder of Kubric-layout sequences")
+    return [path for root in (data.root, *data.extra_roots) for path in list_sequences(root)]
 
 
 def make_clip(

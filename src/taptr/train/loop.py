@@ -32,7 +32,13 @@ from taptr.model.taptr import TAPTR
 from taptr.process_group import gather_objects
 from taptr.train import data_parallel
 from taptr.train.config import TrainConfig
-from taptr.train.dataset import ClipDataset, MicroBatchSampler, clip_loader, held_out_clips
+from taptr.train.dataset import (
+    ClipDataset,
+    MicroBatchSampler,
+    clip_loader,
+    held_out_clips,
+    training_sequences,
+)
 from taptr.train.ema import ModelEMA
 from taptr.train.forward import TrainingForward, batch_targets
 from taptr.train.initialise import init_backbone, init_from_checkpoint
@@ -125,10 +131,8 @@ def _batches(
     config: TrainConfig, info: data_parallel.Distributed, step: int
 ) -> Iterator[ClipBatch]:
     """This process's micro-batches from optimizer step ``step`` on."""
-    if not config.data.root:
-        raise ValueError("data.root is empty: set it to a folder of Kubric-layout sequences")
     dataset = ClipDataset(
-        list_sequences(config.data.root), config.data, config.model.input_size, config.seed
+        training_sequences(config.data), config.data, config.model.input_size, config.seed
     )
     sampler = MicroBatchSampler(
         step * config.grad_accum,
