@@ -8,6 +8,8 @@ the official CUDA kernel computes.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -21,23 +23,22 @@ def level_start_index(spatial_shapes: list[tuple[int, int]]) -> list[int]:
     return starts
 
 
-def sample_levels(
+def sample_each_level(
     values: Tensor, spatial_shapes: list[tuple[int, int]], locations: Tensor
-) -> Tensor:
-    """Bilinearly samples per-head values of every level at the given locations.
+) -> Iterator[Tensor]:
+    """Bilinearly samples per-head values of each level at the given locations, level by level.
 
     Args:
         values: (B, S, M, D) tokens of all levels, flattened row-major per level.
         spatial_shapes: (H_l, W_l) of the L levels, summing to S tokens.
         locations: (B, Q, M, L, P, 2) sampling locations (x, y) in [0, 1] per level.
 
-    Returns:
-        (B·M, D, Q, L·P) sampled values, level-major then point.
+    Yields:
+        (B·M, D, Q, P) sampled values of each level in turn.
     """
     batch, _, heads, channels = values.shape
     queries, points = locations.shape[1], locations.shape[4]
     grids = 2 * locations - 1
-    sampled = []
     for level, (start, (height, width)) in enumerate(
         zip(level_start_index(spatial_shapes), spatial_shapes, strict=True)
     ):
@@ -48,28 +49,37 @@ def sample_levels(
         grid = (
             grids[:, :, :, level].transpose(1, 2).reshape(batch * heads, queries, points, 2)
         )  # (B·M, Q, P, 2)
-        sampled.append(
-            F.grid_sample(
-                level_values, grid, mode="bilinear", padding_mode="zeros", align_corners=False
-            )
+        yield F.grid_sample(
+            level_values, grid, mode="bilinear", padding_mode="zeros", align_corners=False
         )  # (B·M, D, Q, P)
-    return torch.stack(sampled, dim=3).flatten(-2)  # (B·M, D, Q, L·P)
 
 
-def weighted_sum(sampled: Tensor, weights: Tensor) -> Tensor:
-    """Combines sampled values with per-head attention weights.
+def sample_levels(
+    values: Tensor, spatial_shapes: list[tuple[int, int]], locations: Tensor
+) -> Tensor:
+    """`sample_each_level` stacked: (B·M, D, Q, L·P) sampled values, level-major then point."""
+    return torch.stack(list(sample_each_level(values, spatial_shapes, locations)), 3).flatten(-2)
+
+
+def weighted_sum(sampled: list[Tensor], weights: Tensor) -> Tensor:
+    """Combines each level's sampled values with per-head attention weights.
+
+    Summed level by level, so the levels are never stacked into one (B·M, D, Q, L·P) copy.
 
     Args:
-        sampled: (B·M, D, Q, L·P) from `sample_levels`.
+        sampled: L tensors (B·M, D, Q, P) from `sample_each_level`.
         weights: (B, Q, M, L·P), summing to one over the last axis.
 
     Returns:
         (B, Q, M·D), heads concatenated.
     """
     batch, queries, heads, _ = weights.shape
-    channels = sampled.shape[1]
+    channels, points = sampled[0].shape[1], sampled[0].shape[-1]
     weights = weights.transpose(1, 2).reshape(batch * heads, 1, queries, -1)  # (B·M, 1, Q, L·P)
-    output = (sampled * weights).sum(-1)  # (B·M, D, Q)
+    output = sum(
+        (level * weights[..., i * points : (i + 1) * points]).sum(-1)
+        for i, level in enumerate(sampled)
+    )  # (B·M, D, Q)
     return output.view(batch, heads * channels, queries).transpose(1, 2)
 
 
@@ -87,7 +97,7 @@ def ms_deform_attn(
     Returns:
         (B, Q, M·D).
     """
-    sampled = sample_levels(values, spatial_shapes, locations)
+    sampled = list(sample_each_level(values, spatial_shapes, locations))
     return weighted_sum(sampled, weights.flatten(-2))
 
 
@@ -115,10 +125,11 @@ def key_aware_ms_deform_attn(
     """
     batch, num_queries, heads, channels = queries.shape
     levels, points = locations.shape[3:5]
-    sampled = sample_levels(torch.cat((keys, values), dim=-1), spatial_shapes, locations)
-    sampled_keys, sampled_values = sampled.split(channels, dim=1)  # (B·M, D, Q, L·P) each
+    sampled = sample_each_level(torch.cat((keys, values), dim=-1), spatial_shapes, locations)
+    pairs = [level.split(channels, dim=1) for level in sampled]  # (B·M, D, Q, P) key, value
     q = queries.permute(0, 2, 3, 1).reshape(batch * heads, channels, num_queries, 1)
-    logits = (q * sampled_keys).sum(1) / channels**0.5  # (B·M, Q, L·P)
+    logits = torch.cat([(q * key).sum(1) for key, _ in pairs], -1)  # (B·M, Q, L·P)
+    logits = logits / channels**0.5
     logits = logits.view(batch, heads, num_queries, levels * points).transpose(1, 2)
-    output = weighted_sum(sampled_values, logits.softmax(-1))  # logits: (B, Q, M, L·P)
+    output = weighted_sum([value for _, value in pairs], logits.softmax(-1))
     return output, logits.view(batch, num_queries, heads, levels, points)
