@@ -271,7 +271,7 @@ def test_page_shows_the_fallback_notice_next_to_the_model(tmp_path):
     texts = [getattr(block, "value", "") for block in app.blocks.values()]
     header = next(text for text in texts if isinstance(text, str) and "Model:" in text)
     assert "taptr-small-synthetic" in header and predictor.notice in header
-    assert "trained on synthetic videos only" in header
+    assert "trained on synthetic videos:" in header
 
 
 def test_disk_quota_refuses_and_deletes_the_upload(tmp_path, capsys):

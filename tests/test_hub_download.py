@@ -142,7 +142,7 @@ def test_unreachable_hub_falls_back_at_once_with_one_warning(online, monkeypatch
     warnings = [r for r in caplog.records if r.levelno >= logging.WARNING]
     assert len(warnings) == 1 and warnings[0].getMessage() == choice.notice
     assert "\n" not in choice.notice
-    assert "trained on synthetic videos only" in choice.notice
+    assert "trained on synthetic videos:" in choice.notice
     assert "hf download HYeungLee/TAPTR-Series taptrv2.pth" in choice.notice
     assert "the Hub could not be reached" in choice.notice
 

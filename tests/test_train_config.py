@@ -163,3 +163,7 @@ def test_shipped_config_files_load():
     assert load_config(configs / "small.toml") == from_dict({"preset": "small"})
     paper = load_config(configs / "taptrv2_kubric.toml")
     assert paper.model == get_config("taptrv2") and paper.data.num_points == 800
+    stage2 = load_config(configs / "small_photo.toml")
+    assert stage2.model == load_config(configs / "small.toml").model
+    assert stage2.data.extra_roots == ("data/synthetic_photo/train",)
+    assert stage2.init_from == load_config(configs / "ablation_apu.toml").init_from

@@ -287,7 +287,7 @@ def fallback_notice(reason: str) -> str:
     entry = WEIGHTS[DEFAULT_MODEL]
     return (
         f"the paper's weights ({DEFAULT_MODEL}) are not available ({reason}); using the "
-        f"bundled {FALLBACK_MODEL}, trained on synthetic videos only: its tracks on real "
+        f"bundled {FALLBACK_MODEL}, trained on synthetic videos: its tracks on real "
         f"footage will be rough. Get the paper's weights with: pip install 'taptr[hub]' "
         f"&& hf download {entry.repo_id} {entry.filename}"
     )
