@@ -39,10 +39,12 @@ def sample_each_level(
     batch, _, heads, channels = values.shape
     queries, points = locations.shape[1], locations.shape[4]
     grids = 2 * locations - 1
-    for level, (start, (height, width)) in enumerate(
-        zip(level_start_index(spatial_shapes), spatial_shapes, strict=True)
-    ):
-        level_values = values[:, start : start + height * width]  # (B, H·W, M, D)
+    # split, not slices: the backward of a split concatenates the levels' gradients, where
+    # each slice's backward would fill a zero tensor of the whole memory
+    levels = values.split([height * width for height, width in spatial_shapes], dim=1)
+    for level, (level_values, (height, width)) in enumerate(
+        zip(levels, spatial_shapes, strict=True)
+    ):  # level_values: (B, H·W, M, D)
         level_values = level_values.permute(0, 2, 3, 1).reshape(
             batch * heads, channels, height, width
         )  # (B·M, D, H, W)
