@@ -13,7 +13,7 @@ from taptr.model.ops import (
     ms_deform_attn,
     padded_table,
     projected_table,
-    sample_levels,
+    sample_each_level,
 )
 from taptr.model.ops.gather import bilinear_corners
 
@@ -46,7 +46,7 @@ def test_sampling_matches_hand_bilinear(generator):
         .view(1, 1, 1, 1, 6, 2)
         .expand(1, 1, heads, 2, 6, 2)
     )
-    sampled = sample_levels(values, shapes, locations)  # (B·M, D, Q, L·P)
+    sampled = list(sample_each_level(values, shapes, locations))  # (B·M, D, Q, P) per level
     starts = [0, 12]
     for head in range(heads):
         for level, (h, w) in enumerate(shapes):
@@ -54,7 +54,7 @@ def test_sampling_matches_hand_bilinear(generator):
             for point in range(6):
                 lx, ly = locations[0, 0, head, level, point].tolist()
                 expected = _bilinear_zero_padded(image, lx * w - 0.5, ly * h - 0.5)
-                got = sampled[head, :, 0, level * 6 + point]
+                got = sampled[level][head, :, 0, point]
                 torch.testing.assert_close(got, expected)
 
 

@@ -26,7 +26,7 @@ from taptr.model.ops.ms_deform_attn import (
     key_aware_ms_deform_attn,
     level_start_index,
     ms_deform_attn,
-    sample_levels,
+    sample_each_level,
 )
 from taptr.model.ops.point_attention import tracked_point_attention
 from taptr.model.ops.row_blocks import ROW_BLOCK, blocked_mlp, use_row_blocks
@@ -115,7 +115,7 @@ __all__ = [
     "ms_deform_attn",
     "padded_table",
     "projected_table",
-    "sample_levels",
+    "sample_each_level",
     "tracked_point_attention",
     "use_row_blocks",
 ]

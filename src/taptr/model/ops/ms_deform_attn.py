@@ -56,13 +56,6 @@ def sample_each_level(
         )  # (B·M, D, Q, P)
 
 
-def sample_levels(
-    values: Tensor, spatial_shapes: list[tuple[int, int]], locations: Tensor
-) -> Tensor:
-    """`sample_each_level` stacked: (B·M, D, Q, L·P) sampled values, level-major then point."""
-    return torch.stack(list(sample_each_level(values, spatial_shapes, locations)), 3).flatten(-2)
-
-
 def weighted_sum(sampled: list[Tensor], weights: Tensor) -> Tensor:
     """Combines each level's sampled values with per-head attention weights.
 
@@ -78,9 +71,9 @@ def weighted_sum(sampled: list[Tensor], weights: Tensor) -> Tensor:
     batch, queries, heads, _ = weights.shape
     channels, points = sampled[0].shape[1], sampled[0].shape[-1]
     weights = weights.transpose(1, 2).reshape(batch * heads, 1, queries, -1)  # (B·M, 1, Q, L·P)
+    level_weights = weights.split(points, dim=-1)  # (B·M, 1, Q, P) per level
     output = sum(
-        (level * weights[..., i * points : (i + 1) * points]).sum(-1)
-        for i, level in enumerate(sampled)
+        (level * weight).sum(-1) for level, weight in zip(sampled, level_weights, strict=True)
     )  # (B·M, D, Q)
     return output.view(batch, heads * channels, queries).transpose(1, 2)
 
