@@ -167,3 +167,7 @@ def test_shipped_config_files_load():
     assert stage2.model == load_config(configs / "small.toml").model
     assert stage2.data.extra_roots == ("data/synthetic_photo/train",)
     assert stage2.init_from == load_config(configs / "ablation_apu.toml").init_from
+    # stage 3 continues from stage 2's output, on the same data, with the same model
+    stage3 = load_config(configs / "small_photo_stage3.toml")
+    assert stage3.init_from == f"{stage2.out_dir}/model.pt"
+    assert (stage3.model, stage3.data) == (stage2.model, stage2.data)
