@@ -40,3 +40,23 @@ def test_benchmark_suite_lists_every_case_and_runs_the_smoke_case(tmp_path, caps
     assert suite.main(["smoke", "--out", str(tmp_path)]) == 0
     (case,) = json.loads((tmp_path / "smoke.json").read_text())["cases"]
     assert case["agreement"]["visibility_decisions_equal"]
+
+
+def test_fast_execution_parts_benchmark_runs_on_a_tiny_case(tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "benchmarks" / "fast_execution_parts.py"
+    out = tmp_path / "parts.json"
+    arguments = ["--preset", "tiny", "--size", "64", "--points", "5", "--frames", "9"]
+    command = [sys.executable, str(script), *arguments, "--repeats", "2", "--threads", "1"]
+    done = subprocess.run([*command, "--json", str(out)], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    results = json.loads(out.read_text())
+    assert set(results) == {"threads", "channels_last", "encoder_block", "shared_tables", "all"}
+    for name in ("encoder_block", "shared_tables"):  # the same arithmetic, bit for bit
+        assert results[name]["max_abs_difference"] == 0.0
+    assert results["all"]["max_abs_difference"] < 1e-4
+    assert all(results[name]["speedup_median"] > 0 for name in ("channels_last", "all"))
+    assert "speed-up" in done.stdout

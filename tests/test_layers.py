@@ -1,12 +1,17 @@
-"""The MLP's row-blocked inference equals the plain formulation and leaves training alone."""
+"""The fast execution's inference-only variants equal the plain formulation: row-blocked MLPs
+and encoder layers, the decoder's shared table buffer, channels-last frames."""
+
+import dataclasses
 
 import pytest
 import torch
 
 import taptr
+from taptr.config import get_config
 from taptr.model.execution import EXECUTIONS, get_execution
 from taptr.model.layers import MLP
 from taptr.model.ops import ROW_BLOCK, blocked_mlp
+from taptr.model.ops.row_blocks import ENCODER_BLOCK
 
 
 def test_row_blocks_equal_all_rows_at_once():
@@ -42,6 +47,12 @@ def test_executions_set_row_blocks():
     # training steps record autograd, so only its no-grad evaluation takes row blocks
     assert get_execution("training").row_block == ROW_BLOCK
     assert set(EXECUTIONS) == {"reference", "fast", "training"}
+    # the encoder's blocks and the shared decoder tables are the fast execution's alone
+    assert [(e.encoder_block, e.shared_tables) for e in EXECUTIONS.values()] == [
+        (None, False),
+        (ENCODER_BLOCK, True),
+        (None, False),
+    ]
 
 
 def test_the_model_hands_its_row_block_to_every_mlp(monkeypatch):
@@ -80,3 +91,113 @@ def test_unknown_execution_names_the_choices():
         get_execution("turbo")
     with pytest.raises(ValueError, match="unknown execution"):
         taptr.build_model("tiny", execution="turbo")
+
+
+def _fast(**changes):
+    return dataclasses.replace(get_execution("fast"), **changes)
+
+
+def test_encoder_layers_take_the_tokens_in_row_blocks(monkeypatch, generator):
+    from taptr.model.attention import DeformableAttention
+
+    blocks = []
+    original = DeformableAttention.attend
+
+    def spy(self, query, *args):
+        blocks.append(query.shape[1])
+        return original(self, query, *args)
+
+    monkeypatch.setattr(DeformableAttention, "attend", spy)
+    torch.manual_seed(0)
+    model = taptr.build_model("tiny").eval()
+    images = torch.rand(2, 3, 64, 64, generator=generator)
+    layers = len(model.encoder.layers)
+    with torch.no_grad():
+        plain = model.set_execution(_fast(encoder_block=None)).encode_images(images)
+        tokens = sum(h * w for h, w in plain.spatial_shapes)
+        assert blocks == [tokens] * layers and tokens == 340
+        blocks.clear()
+        blocked = model.set_execution(_fast(encoder_block=100)).encode_images(images).memory
+    assert blocks == [100, 100, 100, 40] * layers  # every block attends to the whole frame
+    torch.testing.assert_close(blocked, plain.memory, atol=1e-5, rtol=0)
+    blocks.clear()
+    model.encode_images(images).memory.sum().backward()  # autograd records: all rows at once
+    assert blocks == [tokens] * layers
+
+
+def test_decoder_layers_write_their_tables_into_one_buffer(monkeypatch, generator):
+    import taptr.model.ops as ops
+    from taptr.model.decoder import Decoder
+
+    buffers = []
+    original = ops.projected_table
+
+    def spy(*args, out=None, **kwargs):
+        table = original(*args, out=out, **kwargs)
+        buffers.append(None if out is None else table.data_ptr())
+        return table
+
+    monkeypatch.setattr(ops, "projected_table", spy)
+    torch.manual_seed(0)
+    model = taptr.build_model("tiny").eval()
+    features = model.encode_images(torch.rand(2, 3, 64, 64, generator=generator))
+    memory = features.memory[None]  # (1, W_t = 2, S, C)
+    content = torch.randn(1, 2, 3, 32, generator=generator)
+    positions = torch.randn(1, 2, 3, 4, generator=generator)
+    tracking = torch.ones(1, 2, 3, dtype=torch.bool)
+
+    def decode():
+        buffers.clear()
+        args = (memory, features.spatial_shapes, content, positions, tracking, tracking)
+        return model.decode_window(*args)
+
+    with torch.no_grad():
+        shared = decode()
+        # one key and one value buffer for all layers
+        assert len(buffers) == 2 * model.num_layers and len(set(buffers)) == 2
+        assert None not in buffers
+        monkeypatch.setattr(Decoder, "prepare_window", lambda *args: [])
+        fresh = decode()
+        assert buffers == [None] * 2 * model.num_layers
+    torch.testing.assert_close(shared.positions, fresh.positions, atol=0, rtol=0)
+    monkeypatch.undo()
+    flat = memory.flatten(0, 1)
+    standard = taptr.build_model(get_config("tiny").replace(cross_attention="standard"))
+    # no buffer under autograd, for the grid_sample kernel, or without key-aware attention
+    for decoder, execution, grad in (
+        (model.decoder, "fast", True),
+        (model.decoder, "reference", False),
+        (standard.decoder, "fast", False),
+        (model.decoder, _fast(shared_tables=False), False),
+    ):
+        with torch.set_grad_enabled(grad):
+            prepared = decoder.prepare_window(
+                content, flat, features.spatial_shapes, get_execution(execution)
+            )
+        assert prepared == []
+    with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16):  # products in bfloat16
+        assert model.decoder.prepare_window(content, flat, features.spatial_shapes, _fast()) == []
+    with torch.no_grad():
+        (buffer,) = model.decoder.prepare_window(
+            content, flat, features.spatial_shapes, get_execution("fast")
+        )
+    assert buffer.shape == (2, flat.shape[0] * flat.shape[1], 32)
+
+
+def test_fast_execution_feeds_the_backbone_channels_last(generator):
+    seen = []
+    model = taptr.build_model("tiny").eval()
+    model.backbone.register_forward_pre_hook(
+        lambda module, inputs: seen.append(
+            inputs[0].is_contiguous(memory_format=torch.channels_last)
+        )
+    )
+    images = torch.rand(2, 3, 64, 64, generator=generator)
+    with torch.no_grad():
+        fast = model.set_execution(_fast(row_block=None)).encode_images(images).memory
+        plain = model.set_execution(_fast(row_block=None, channels_last=False)).encode_images(
+            images
+        )
+    assert seen == [True, False]
+    torch.testing.assert_close(fast, plain.memory, atol=1e-5, rtol=0)
+    assert [e.channels_last for e in EXECUTIONS.values()] == [False, True, False]

@@ -14,6 +14,7 @@ from taptr.model.ops import (
     padded_table,
     projected_table,
     sample_each_level,
+    value_table,
 )
 from taptr.model.ops.gather import bilinear_corners
 
@@ -250,10 +251,28 @@ def test_deform_attn_kernels_agree(generator):
     weights = torch.rand(2, 3, 2, 2, 2, generator=generator, dtype=torch.float64)
     with torch.no_grad():
         outputs = [
-            deform_attn(kernel, memory, projection, shapes, locations, weights)
+            deform_attn(
+                kernel,
+                value_table(kernel, memory, projection, shapes, heads=2),
+                shapes,
+                locations,
+                weights,
+            )
             for kernel in ("grid_sample", "gather")
         ]
     torch.testing.assert_close(outputs[0], outputs[1])
+
+
+def test_projected_table_writes_into_a_given_buffer(generator):
+    shapes = [(3, 4), (2, 2)]
+    memory = torch.randn(2, 16, 8, generator=generator)
+    projection = torch.nn.Linear(8, 8)
+    buffer = torch.full((32, 8), float("nan"))
+    with torch.no_grad():
+        table = projected_table(memory, projection, shapes, heads=2, border=False, out=buffer)
+        expected = projection(memory).reshape(-1, 4)
+    assert table.data_ptr() == buffer.data_ptr() and table.shape == (64, 4)
+    torch.testing.assert_close(table, expected)
 
 
 def _table(values: torch.Tensor, shapes, border: bool) -> torch.Tensor:

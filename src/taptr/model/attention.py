@@ -14,7 +14,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from taptr.model.execution import Execution
-from taptr.model.ops import deform_attn, key_aware_attn
+from taptr.model.ops import deform_attn, key_aware_attn, value_table
 from taptr.model.ops.gather import interleaved_sizes
 
 
@@ -93,6 +93,50 @@ class DeformableAttention(nn.Module):
             nn.init.xavier_uniform_(proj.weight)
             nn.init.zeros_(proj.bias)
 
+    def values(
+        self, memory: Tensor, spatial_shapes: list[tuple[int, int]], execution: Execution
+    ) -> Tensor:
+        """The memory's projected values, laid out for ``execution.kernel`` (`value_table`).
+
+        Args:
+            memory: (B, S, C) flattened multi-scale tokens.
+            spatial_shapes: (H_l, W_l) of the L levels.
+            execution: how to run.
+        """
+        return value_table(
+            execution.kernel, memory, self.value_proj, spatial_shapes, self.num_heads
+        )
+
+    def attend(
+        self,
+        query: Tensor,
+        reference: Tensor,
+        values: Tensor,
+        spatial_shapes: list[tuple[int, int]],
+        execution: Execution,
+    ) -> DeformableOutput:
+        """Attends from each query to values made by `values` around its reference point.
+
+        Queries are independent of each other: any subset of them gives the same rows.
+
+        Args:
+            query: (B, Q, C) queries, position embedding already added.
+            reference: (B, Q, 2) reference (x, y) in [0, 1].
+            values: `values` of the memory, made with the same execution.
+            spatial_shapes: (H_l, W_l) of the L levels.
+            execution: how to run; its ``kernel`` samples the values.
+        """
+        batch, queries, _ = query.shape
+        m, lv, p = self.num_heads, self.num_levels, self.num_points
+        offsets = self.sampling_offsets(query).view(batch, queries, m, lv, p, 2)
+        logits = self.attention_weights(query).view(batch, queries, m, lv * p)
+        weights = logits.softmax(-1).view(batch, queries, m, lv, p)
+        locations = sampling_locations(reference, offsets, spatial_shapes)
+        output = deform_attn(execution.kernel, values, spatial_shapes, locations, weights)
+        return DeformableOutput(
+            self.output_proj(output), logits.view(batch, queries, m, lv, p), offsets
+        )
+
     def forward(
         self,
         query: Tensor,
@@ -110,18 +154,8 @@ class DeformableAttention(nn.Module):
             spatial_shapes: (H_l, W_l) of the L levels.
             execution: how to run; its ``kernel`` samples the memory.
         """
-        batch, queries, _ = query.shape
-        m, lv, p = self.num_heads, self.num_levels, self.num_points
-        offsets = self.sampling_offsets(query).view(batch, queries, m, lv, p, 2)
-        logits = self.attention_weights(query).view(batch, queries, m, lv * p)
-        weights = logits.softmax(-1).view(batch, queries, m, lv, p)
-        locations = sampling_locations(reference, offsets, spatial_shapes)
-        output = deform_attn(
-            execution.kernel, memory, self.value_proj, spatial_shapes, locations, weights
-        )
-        return DeformableOutput(
-            self.output_proj(output), logits.view(batch, queries, m, lv, p), offsets
-        )
+        values = self.values(memory, spatial_shapes, execution)
+        return self.attend(query, reference, values, spatial_shapes, execution)
 
 
 class KeyAwareDeformableAttention(nn.Module):
@@ -163,6 +197,7 @@ class KeyAwareDeformableAttention(nn.Module):
         memory: Tensor,
         spatial_shapes: list[tuple[int, int]],
         execution: Execution,
+        tables: Tensor | None = None,
     ) -> DeformableOutput:
         """Attends from each query to keys and values sampled around its reference point.
 
@@ -172,6 +207,8 @@ class KeyAwareDeformableAttention(nn.Module):
             memory: (B, S, C) flattened multi-scale tokens.
             spatial_shapes: (H_l, W_l) of the L levels.
             execution: how to run; its ``kernel`` samples the keys and values.
+            tables: optional (2, B · S, C) buffer for the ``gather`` kernel's key and value
+                tables (`taptr.model.ops.key_aware_attn`).
         """
         batch, queries, _ = query.shape
         m, lv, p = self.num_heads, self.num_levels, self.num_points
@@ -186,6 +223,7 @@ class KeyAwareDeformableAttention(nn.Module):
             self.value_proj,
             spatial_shapes,
             locations,
+            tables,
         )
         return DeformableOutput(self.output_proj(output), logits, offsets)
 

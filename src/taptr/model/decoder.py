@@ -135,6 +135,7 @@ class DecoderLayer(nn.Module):
         masks: AttentionMasks,
         update: Tensor,
         execution: Execution,
+        tables: Tensor | None = None,
     ) -> LayerOutput:
         """Runs one layer.
 
@@ -147,8 +148,12 @@ class DecoderLayer(nn.Module):
             masks: which entries may attend to each other.
             update: (B, W_t, N) entries whose position may change (tracked, after start).
             execution: how to run.
+            tables: optional (2, B·W_t·S, C) buffer for the key-aware cross-attention's key
+                and value tables (`Decoder.prepare_window`).
         """
-        x, attended = self._cross(content, query_pos, reference, memory, spatial_shapes, execution)
+        x, attended = self._cross(
+            content, query_pos, reference, memory, spatial_shapes, execution, tables
+        )
         displacement = None
         if self.position_update is not None and self.position_embed is not None:
             # the APU's steps 1-3 (taptr.model.position_update), then the re-embedding
@@ -172,17 +177,22 @@ class DecoderLayer(nn.Module):
         memory: Tensor,
         spatial_shapes: list[tuple[int, int]],
         execution: Execution,
+        tables: Tensor | None = None,
     ) -> tuple[Tensor, DeformableOutput]:
-        """Post-normed cross-attention; returns (B, W_t, N, C) and the attention's output."""
+        """Post-normed cross-attention; returns (B, W_t, N, C) and the attention's output.
+
+        ``tables`` (key-aware attention only) is the buffer of `DecoderLayer.forward`.
+        """
         batch, frames, points, channels = x.shape
         flat = x.reshape(batch * frames, points, channels)  # (B·W_t, N, C)
-        attended = self.cross_attention(
-            flat + query_pos.reshape(batch * frames, points, channels),
-            reference[..., :2].reshape(batch * frames, points, 2),
-            memory,
-            spatial_shapes,
-            execution,
-        )
+        query = flat + query_pos.reshape(batch * frames, points, channels)
+        reference_xy = reference[..., :2].reshape(batch * frames, points, 2)
+        if isinstance(self.cross_attention, KeyAwareDeformableAttention):
+            attended = self.cross_attention(
+                query, reference_xy, memory, spatial_shapes, execution, tables
+            )
+        else:
+            attended = self.cross_attention(query, reference_xy, memory, spatial_shapes, execution)
         x = self.norm_cross(flat + attended.output).view(batch, frames, points, channels)
         return x, attended
 
@@ -281,7 +291,13 @@ class Decoder(nn.Module):
         spatial_shapes: list[tuple[int, int]],
         execution: Execution,
     ) -> list[Tensor]:
-        """Tensors prepared once per window for `layer_extras`; TAPTRv2 needs none.
+        """Tensors prepared once per window for `layer_extras`.
+
+        TAPTRv2 at inference with the ``gather`` kernel and ``execution.shared_tables``:
+        one (2, B·W_t·S, C) buffer that every layer's key-aware attention writes its key
+        and value tables into. Each table is hundreds of megabytes; allocated afresh per
+        layer, each is a new mapping whose every page faults on first write. Otherwise
+        (also under autocast, whose products come out in another dtype) nothing.
 
         Args:
             content: (B, W_t, N, C) content at window entry.
@@ -289,7 +305,13 @@ class Decoder(nn.Module):
             spatial_shapes: (H_l, W_l) per level.
             execution: how to run.
         """
-        return []
+        key_aware = isinstance(self.layers[0].cross_attention, KeyAwareDeformableAttention)
+        gather = execution.shared_tables and execution.kernel == "gather"
+        autocast = torch.is_autocast_enabled(memory.device.type)
+        if not gather or not key_aware or torch.is_grad_enabled() or autocast:
+            return []
+        images, tokens, channels = memory.shape
+        return [memory.new_empty(2, images * tokens, channels)]
 
     def layer_input(self, index: int, out: Tensor, content: Tensor, execution: Execution) -> Tensor:
         """Layer ``index``'s input (B, W_t, N, C) from the previous output and entry content.
@@ -300,11 +322,11 @@ class Decoder(nn.Module):
         return out if index == 0 else self.update_layer_content(out, content, execution)
 
     def layer_extras(self, prepared: list[Tensor], reference: Tensor) -> tuple[Tensor, ...]:
-        """A layer's arguments after the common ones, at its input reference; none here.
+        """A layer's arguments after the common ones: the table buffer, if prepared.
 
         ``prepared`` is what `prepare_window` returned, ``reference`` (B, W_t, N, 4) in [0, 1].
         """
-        return ()
+        return tuple(prepared)
 
     def read_heads(
         self, index: int, result: LayerOutput, previous: Tensor, step: Tensor, execution: Execution

@@ -13,6 +13,7 @@ from torch import Tensor, nn
 from taptr.model.attention import DeformableAttention
 from taptr.model.execution import Execution
 from taptr.model.layers import MLP
+from taptr.model.ops.row_blocks import use_row_blocks
 from taptr.model.position_encoding import feature_map_encoding
 
 
@@ -55,9 +56,43 @@ class EncoderLayer(nn.Module):
         spatial_shapes: list[tuple[int, int]],
         execution: Execution,
     ) -> Tensor:
-        """Runs one post-norm layer the way ``execution`` says."""
-        attended = self.attention(
-            tokens + position, reference, tokens, spatial_shapes, execution
+        """Runs one post-norm layer the way ``execution`` says.
+
+        Only the attention's value table needs every token; the rest of the layer is row
+        by row. So at inference with an encoder block (`Execution.encoder_block`) the
+        tokens go through it a block at a time, with every intermediate (sampling
+        locations, corner rows and weights, the FFN's hidden activation) small enough to
+        stay in the cache instead of a full-frame tensor each: the same arithmetic per row.
+        """
+        values = self.attention.values(tokens, spatial_shapes, execution)
+        block = execution.encoder_block
+        if block is None or not use_row_blocks(self, tokens, block):
+            return self._update(tokens, position, reference, values, spatial_shapes, execution)
+        out = torch.empty_like(tokens)  # (B, S, C)
+        for start in range(0, tokens.shape[1], block):
+            rows = slice(start, start + block)
+            out[:, rows] = self._update(
+                tokens[:, rows],
+                position[:, rows],
+                reference[:, rows],
+                values,
+                spatial_shapes,
+                execution,
+            )
+        return out
+
+    def _update(
+        self,
+        tokens: Tensor,
+        position: Tensor,
+        reference: Tensor,
+        values: Tensor,
+        spatial_shapes: list[tuple[int, int]],
+        execution: Execution,
+    ) -> Tensor:
+        """The layer on some of the tokens (B, Q, C), attending to the values of all."""
+        attended = self.attention.attend(
+            tokens + position, reference, values, spatial_shapes, execution
         ).output
         tokens = self.norm_attention(tokens + attended)
         return self.norm_ffn(tokens + self.ffn(tokens, execution.row_block))

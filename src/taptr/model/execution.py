@@ -11,8 +11,9 @@ to the encoder, the decoder and their attentions as an argument: no submodule ho
   masks, every MLP on all its rows at once.
 - ``fast``: the default for inference: deformable attention as weighted row gathers
   (`taptr.model.ops.gather`), point attention on the tracked points of each frame only
-  (`taptr.model.ops.point_attention`), MLPs in cache-sized row blocks
-  (`taptr.model.ops.row_blocks`).
+  (`taptr.model.ops.point_attention`), MLPs and encoder layers in cache-sized row blocks
+  (`taptr.model.ops.row_blocks`), the decoder's key and value tables written into one
+  buffer per window, frames channels-last into the backbone.
 - ``training``: what `taptr.train` builds. The ``grid_sample`` kernel, because its backward
   is about half the cost of the gather kernel's on CPU (``embedding_bag``'s backward sorts
   every index: 2.4 vs 4.0 s per small-preset step); grouped point attention; and row blocks
@@ -25,7 +26,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-from taptr.model.ops.row_blocks import ROW_BLOCK
+from taptr.model.ops.row_blocks import ENCODER_BLOCK, ROW_BLOCK
 
 Kernel = Literal["grid_sample", "gather"]
 """A deformable-attention kernel of `taptr.model.ops`."""
@@ -40,19 +41,39 @@ class Execution:
         kernel: deformable-attention kernel, ``grid_sample`` (reference) or ``gather``.
         grouped_point_attention: run point self-attention on each frame's tracked points
             only, instead of on all N points with an N × N mask.
-        row_block: MLPs at inference take their rows this many at a time; None runs all rows
-            at once.
+        row_block: MLPs at inference take their rows this many at a time; None runs all
+            rows at once.
+        encoder_block: encoder layers at inference take their tokens this many at a time
+            after the value table (`taptr.model.encoder.EncoderLayer`); None runs all
+            tokens at once.
+        shared_tables: the decoder's layers write their key and value tables into one
+            buffer per window (``gather`` kernel, inference only;
+            `taptr.model.decoder.Decoder.prepare_window`) instead of fresh tensors.
+        channels_last: frames enter the backbone in channels-last (NHWC) memory order,
+            which oneDNN's CPU convolutions run faster; the feature maps then flatten into
+            tokens without a transpose copy. Same values up to rounding.
     """
 
     name: str
     kernel: Kernel
     grouped_point_attention: bool
     row_block: int | None
+    encoder_block: int | None = None
+    shared_tables: bool = False
+    channels_last: bool = False
 
 
 EXECUTIONS: dict[str, Execution] = {
     "reference": Execution("reference", "grid_sample", False, None),
-    "fast": Execution("fast", "gather", True, ROW_BLOCK),
+    "fast": Execution(
+        "fast",
+        "gather",
+        True,
+        ROW_BLOCK,
+        encoder_block=ENCODER_BLOCK,
+        shared_tables=True,
+        channels_last=True,
+    ),
     "training": Execution("training", "grid_sample", True, ROW_BLOCK),
 }
 """The named executions, by name."""

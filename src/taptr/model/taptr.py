@@ -118,6 +118,8 @@ class TAPTR(nn.Module):
         Returns:
             `FrameFeatures` whose memory is (N, S, C) (one image per row).
         """
+        if self.execution.channels_last:
+            images = images.contiguous(memory_format=torch.channels_last)
         maps = self.input_projections(self.backbone(images))
         spatial_shapes = [(m.shape[-2], m.shape[-1]) for m in maps]
         return FrameFeatures(self.encoder(maps, self.execution), spatial_shapes)

@@ -6,8 +6,9 @@ execution asks for the faster ones:
 
 - deformable attention: ``grid_sample`` is the reference (Deformable DETR's, what the
   official code computes, `ms_deform_attn`); ``gather`` computes the same sums as weighted
-  row gathers (`gather`, several times faster on CPU, no layout copies). `deform_attn` and
-  `key_aware_attn` take the memory and its projections and run the kernel they are given;
+  row gathers (`gather`, several times faster on CPU, no layout copies). `value_table`
+  lays the projected values out for a kernel and `deform_attn` samples them;
+  `key_aware_attn` takes the memory and its projections; each runs the kernel it is given;
 - point self-attention on each frame's tracked points only (`point_attention`);
 - MLPs in cache-sized row blocks (`row_blocks`).
 """
@@ -34,20 +35,43 @@ from taptr.model.ops.row_blocks import ROW_BLOCK, blocked_mlp, use_row_blocks
 KERNELS = ("grid_sample", "gather")
 
 
-def deform_attn(
+def value_table(
     kernel: str,
     memory: Tensor,
     value_proj: nn.Linear,
     spatial_shapes: list[tuple[int, int]],
-    locations: Tensor,
-    weights: Tensor,
+    heads: int,
 ) -> Tensor:
-    """Standard deformable attention over projected memory.
+    """The memory's projected values in the layout ``kernel`` samples (`deform_attn`).
 
     Args:
         kernel: ``grid_sample`` or ``gather``.
         memory: (B, S, C) tokens.
         value_proj: the value projection.
+        spatial_shapes: (H_l, W_l) per level.
+        heads: attention heads M.
+
+    Returns:
+        ``gather``: the bordered table (B · Σ(H_l + 3)(W_l + 3) · M, C / M) of
+        `projected_table`; ``grid_sample``: (B, S, M, C / M).
+    """
+    if kernel == "gather":
+        return projected_table(memory, value_proj, spatial_shapes, heads)
+    return value_proj(memory).view(*memory.shape[:2], heads, -1)
+
+
+def deform_attn(
+    kernel: str,
+    values: Tensor,
+    spatial_shapes: list[tuple[int, int]],
+    locations: Tensor,
+    weights: Tensor,
+) -> Tensor:
+    """Standard deformable attention over values laid out by `value_table`.
+
+    Args:
+        kernel: ``grid_sample`` or ``gather``, the one ``values`` was made for.
+        values: `value_table`'s output.
         spatial_shapes: (H_l, W_l) per level.
         locations: (B, Q, M, L, P, 2) in [0, 1].
         weights: (B, Q, M, L, P) softmaxed over (L, P).
@@ -55,11 +79,8 @@ def deform_attn(
     Returns:
         (B, Q, C).
     """
-    heads = locations.shape[2]
     if kernel == "gather":
-        table = projected_table(memory, value_proj, spatial_shapes, heads)
-        return gather_deform_attn(table, spatial_shapes, locations, weights)
-    values = value_proj(memory).view(*memory.shape[:2], heads, -1)  # (B, S, M, D)
+        return gather_deform_attn(values, spatial_shapes, locations, weights)
     return ms_deform_attn(values, spatial_shapes, locations, weights)
 
 
@@ -71,6 +92,7 @@ def key_aware_attn(
     value_proj: nn.Linear,
     spatial_shapes: list[tuple[int, int]],
     locations: Tensor,
+    tables: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Key-aware deformable attention over projected memory.
 
@@ -82,6 +104,8 @@ def key_aware_attn(
         value_proj: the value projection.
         spatial_shapes: (H_l, W_l) per level.
         locations: (B, Q, M, L, P, 2) in [0, 1].
+        tables: optional (2, B · S, C) buffer the ``gather`` kernel writes the key and the
+            value table into (without gradients; see `projected_table`).
 
     Returns:
         output (B, Q, C) and pre-softmax logits (B, Q, M, L, P).
@@ -89,8 +113,11 @@ def key_aware_attn(
     heads = locations.shape[2]
     if kernel == "gather":
         # two tables for a few hundred points: no border (the module doc of `gather`)
-        keys = projected_table(memory, key_proj, spatial_shapes, heads, border=False)
-        values = projected_table(memory, value_proj, spatial_shapes, heads, border=False)
+        key_out, value_out = (None, None) if tables is None else tables
+        keys = projected_table(memory, key_proj, spatial_shapes, heads, border=False, out=key_out)
+        values = projected_table(
+            memory, value_proj, spatial_shapes, heads, border=False, out=value_out
+        )
         return gather_key_aware_attn(queries, keys, values, spatial_shapes, locations, border=False)
     shape = (*memory.shape[:2], heads, -1)  # (B, S, M, D)
     return key_aware_ms_deform_attn(
@@ -118,4 +145,5 @@ __all__ = [
     "sample_each_level",
     "tracked_point_attention",
     "use_row_blocks",
+    "value_table",
 ]

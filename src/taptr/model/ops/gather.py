@@ -24,8 +24,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-CHUNK_ELEMENTS = 1 << 24
-"""Largest intermediate of sampled keys, in elements (64 MB in float32)."""
+CHUNK_ELEMENTS = 1 << 22
+"""Largest intermediate of sampled keys, in elements (16 MB in float32: below glibc's
+largest mmap threshold, 32 MB, so the chunks reuse heap memory instead of each mapping
+and page-faulting fresh memory)."""
 
 
 def padded_table(values: Tensor, spatial_shapes: list[tuple[int, int]]) -> Tensor:
@@ -56,6 +58,7 @@ def projected_table(
     heads: int,
     *,
     border: bool = True,
+    out: Tensor | None = None,
 ) -> Tensor:
     """``projection(memory)`` split into heads as gather rows, with or without the border.
 
@@ -71,6 +74,10 @@ def projected_table(
         heads: attention heads M.
         border: `padded_table`'s zero border (see the module docstring); without it the
             table is the projection's rows, (B · S · M, C / M).
+        out: optional (B · S, C) buffer the borderless table is written into when no
+            gradient is needed. The decoder's tables are hundreds of megabytes: a fresh
+            allocation of that size is a fresh mapping whose every page faults on first
+            write, so the decoder's layers share one buffer instead.
 
     Returns:
         (B · Σ(H_l + 3)(W_l + 3) · M, C / M), or (B · S · M, C / M) without the border.
@@ -82,7 +89,8 @@ def projected_table(
     if not border:
         if differentiable:
             return projection(memory).reshape(-1, channels // heads)
-        rows = torch.addmm(projection.bias, memory.reshape(-1, channels), projection.weight.t())
+        flat = memory.reshape(-1, channels)  # (B·S, C)
+        rows = torch.addmm(projection.bias, flat, projection.weight.t(), out=out)
         return rows.view(-1, channels // heads)
     if differentiable:
         return padded_table(projection(memory).view(batch, tokens, heads, -1), spatial_shapes)

@@ -16,6 +16,12 @@ ROW_BLOCK = 512
 about a core's share of cache (256-1024 measured alike; unblocked, the encoder FFN is 1.5x
 slower on one thread)."""
 
+ENCODER_BLOCK = 1024
+"""Tokens per block of an encoder layer in the ``fast`` execution: everything after the
+value table (sampling locations, corner rows and weights, output projection, norms, FFN)
+for 1,024 tokens is a few megabytes, where a 512 × 512 frame's 21,760 tokens make each
+intermediate tens of megabytes (512-4,096 measured alike within this machine's noise)."""
+
 
 def tracks_grad(module: nn.Module, x: Tensor) -> bool:
     """Whether autograd would record a forward of ``module`` on ``x``."""

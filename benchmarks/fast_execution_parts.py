@@ -1,0 +1,176 @@
+"""What each part of the fast execution buys, measured in paired runs on a noisy machine.
+
+Every part is a field of `taptr.model.execution.Execution`, so switching it off is the fast
+execution with one field changed; the outputs of both are compared too. Each repetition
+runs the part off and on back to back (the order alternating between repetitions), and the
+result is the median of the per-pair ratios: a shared host whose matrix-product speed drifts
+by ±20% within seconds moves both runs of a pair alike, which a ratio of two separate
+medians does not cancel.
+
+Cases (by default the paper preset, random weights, 512 × 512 frames, 800 points):
+
+- ``channels_last``: backbone and input projections on one frame;
+- ``encoder_block``: the deformable encoder on one frame's feature maps;
+- ``shared_tables``: the decoder on one window of 8 frames (random memory);
+- ``all``: the whole tracker on a random video, every part above off against on.
+
+``python benchmarks/fast_execution_parts.py --repeats 9 --threads 2``
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import statistics
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from taptr.model.build import build_model
+from taptr.model.execution import Execution, get_execution
+from taptr.model.frames import EncodedFrames
+from taptr.model.sliding_window import QuerySet, run_windows
+from taptr.model.taptr import TAPTR, normalize_frames
+
+PARTS_OFF = {"encoder_block": None, "shared_tables": False, "channels_last": False}
+
+
+def _timed(run: Callable[[], torch.Tensor]) -> tuple[float, torch.Tensor]:
+    start = time.perf_counter()
+    out = run()
+    return time.perf_counter() - start, out
+
+
+def paired(
+    model: TAPTR, off: Execution, on: Execution, run: Callable[[], torch.Tensor], repeats: int
+) -> dict[str, Any]:
+    """Runs ``run`` under both executions ``repeats`` times each, in alternating pairs."""
+    times: dict[str, list[float]] = {"off": [], "on": []}
+    outputs: dict[str, torch.Tensor] = {}
+    model.set_execution(on)
+    run()  # warm-up: first-call allocations and oneDNN primitive creation
+    for index in range(repeats):
+        order = [("off", off), ("on", on)]
+        for name, execution in order if index % 2 == 0 else order[::-1]:
+            model.set_execution(execution)
+            seconds, outputs[name] = _timed(run)
+            times[name].append(seconds)
+    ratios = sorted(a / b for a, b in zip(times["off"], times["on"], strict=True))
+    quarter = max(0, len(ratios) // 4)
+    return {
+        "off_median_s": statistics.median(times["off"]),
+        "on_median_s": statistics.median(times["on"]),
+        "speedup_median": statistics.median(ratios),
+        "speedup_quartiles": [ratios[quarter], ratios[-1 - quarter]],
+        "max_abs_difference": float((outputs["off"] - outputs["on"]).abs().max()),
+    }
+
+
+def cases(
+    model: TAPTR, repeats: int, frames: int, size: int, points: int
+) -> dict[str, dict[str, Any]]:
+    """The four cases of the module docstring, on ``size`` × ``size`` frames."""
+    fast = get_execution("fast")
+    generator = torch.Generator().manual_seed(0)
+    image = torch.randn(1, 3, size, size, generator=generator)
+    results = {}
+    with torch.no_grad():
+        off = dataclasses.replace(fast, channels_last=False)
+
+        def backbone() -> torch.Tensor:
+            if model.execution.channels_last:
+                return model.input_projections(
+                    model.backbone(image.contiguous(memory_format=torch.channels_last))
+                )[0]
+            return model.input_projections(model.backbone(image))[0]
+
+        results["channels_last"] = paired(model, off, fast, backbone, repeats)
+        maps = model.input_projections(model.backbone(image))
+        off = dataclasses.replace(fast, encoder_block=None)
+        results["encoder_block"] = paired(
+            model, off, fast, lambda: model.encoder(maps, model.execution), repeats
+        )
+        results["shared_tables"] = paired(
+            model,
+            dataclasses.replace(fast, shared_tables=False),
+            fast,
+            _decoder_window(model, generator, size, points),
+            repeats,
+        )
+        results["all"] = paired(
+            model,
+            dataclasses.replace(fast, **PARTS_OFF),
+            fast,
+            _tracker(model, generator, frames, size, points),
+            max(1, repeats // 3),
+        )
+    return results
+
+
+def _decoder_window(
+    model: TAPTR, generator: torch.Generator, size: int, points: int
+) -> Callable[[], torch.Tensor]:
+    features = model.encode_images(torch.randn(1, 3, size, size, generator=generator))
+    window = model.window_size
+    memory = features.memory[:, None].expand(1, window, -1, -1).contiguous()  # (1, W_t, S, C)
+    channels = memory.shape[-1]
+    content = torch.randn(1, window, points, channels, generator=generator)
+    positions = torch.randn(1, window, points, 4, generator=generator)
+    tracking = torch.ones(1, window, points, dtype=torch.bool)
+    args = (memory, features.spatial_shapes, content, positions, tracking, tracking)
+    return lambda: model.decode_window(*args).positions
+
+
+def _tracker(
+    model: TAPTR, generator: torch.Generator, frames: int, size: int, points: int
+) -> Callable[[], torch.Tensor]:
+    shape = (1, frames, 3, size, size)
+    video = torch.randint(0, 256, shape, generator=generator, dtype=torch.uint8)
+    queries = QuerySet(
+        torch.zeros(1, points, dtype=torch.long),
+        torch.rand(1, points, 2, generator=generator) * 0.9 + 0.05,
+        torch.ones(1, points, dtype=torch.bool),
+    )
+
+    def load(first: int, last: int) -> torch.Tensor:
+        return normalize_frames(video[:, first : last + 1].float() / 255)
+
+    def track() -> torch.Tensor:
+        return run_windows(
+            model, queries, frames, EncodedFrames(model, load), torch.float32
+        ).positions
+
+    return track
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--repeats", type=int, default=9, help="pairs per case (default 9)")
+    parser.add_argument("--frames", type=int, default=12, help="video length of 'all'")
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--preset", default="taptrv2", help="model preset (default taptrv2)")
+    parser.add_argument("--size", type=int, default=512, help="frame side (default 512)")
+    parser.add_argument("--points", type=int, default=800, help="query points (default 800)")
+    parser.add_argument("--json", type=Path, help="write the results here")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(0)
+    model = build_model(args.preset, execution="fast").eval()
+    results = cases(model, args.repeats, args.frames, args.size, args.points)
+    for name, result in results.items():
+        low, high = result["speedup_quartiles"]
+        print(
+            f"{name:14} off {result['off_median_s']:.3f} s  on {result['on_median_s']:.3f} s  "
+            f"speed-up {result['speedup_median']:.3f} (quartiles {low:.3f}-{high:.3f})  "
+            f"max |diff| {result['max_abs_difference']:.2e}"
+        )
+    if args.json:
+        args.json.write_text(json.dumps({"threads": args.threads, **results}, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()
