@@ -14,7 +14,8 @@ Cases (by default the paper preset, random weights, 512 × 512 frames, 800 point
 - ``shared_tables``: the decoder on one window of 8 frames (random memory);
 - ``all``: the whole tracker on a random video, every part above off against on.
 
-``python benchmarks/fast_execution_parts.py --repeats 9 --threads 2``
+``python benchmarks/fast_execution_parts.py --repeats 9 --threads 2``; with ``--processes``,
+only the whole tracker, every run in a fresh process (what ``taptr bench`` does).
 """
 
 from __future__ import annotations
@@ -23,6 +24,8 @@ import argparse
 import dataclasses
 import json
 import statistics
+import subprocess
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -59,15 +62,31 @@ def paired(
             model.set_execution(execution)
             seconds, outputs[name] = _timed(run)
             times[name].append(seconds)
+    summary = _summary(times)
+    summary["max_abs_difference"] = float((outputs["off"] - outputs["on"]).abs().max())
+    return summary
+
+
+def _summary(times: dict[str, list[float]]) -> dict[str, Any]:
     ratios = sorted(a / b for a, b in zip(times["off"], times["on"], strict=True))
-    quarter = max(0, len(ratios) // 4)
+    quarter = len(ratios) // 4
     return {
         "off_median_s": statistics.median(times["off"]),
         "on_median_s": statistics.median(times["on"]),
         "speedup_median": statistics.median(ratios),
         "speedup_quartiles": [ratios[quarter], ratios[-1 - quarter]],
-        "max_abs_difference": float((outputs["off"] - outputs["on"]).abs().max()),
     }
+
+
+def isolated(arguments: list[str], repeats: int) -> dict[str, Any]:
+    """The ``all`` case with every run in a fresh process (pairs alternating in order)."""
+    times: dict[str, list[float]] = {"off": [], "on": []}
+    for index in range(repeats):
+        for part in ("off", "on") if index % 2 == 0 else ("on", "off"):
+            command = [sys.executable, __file__, *arguments, "--run-once", part]
+            done = subprocess.run(command, capture_output=True, text=True, check=True)
+            times[part].append(float(done.stdout.split()[-1]))
+    return _summary(times)
 
 
 def cases(
@@ -147,6 +166,11 @@ def _tracker(
     return track
 
 
+def sizes(args: argparse.Namespace) -> tuple[int, int, int]:
+    """(frames, size, points) of the command line."""
+    return args.frames, args.size, args.points
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--repeats", type=int, default=9, help="pairs per case (default 9)")
@@ -156,17 +180,46 @@ def main() -> None:
     parser.add_argument("--size", type=int, default=512, help="frame side (default 512)")
     parser.add_argument("--points", type=int, default=800, help="query points (default 800)")
     parser.add_argument("--json", type=Path, help="write the results here")
+    parser.add_argument(
+        "--processes",
+        action="store_true",
+        help="only the whole tracker, each run in its own process (--repeats pairs)",
+    )
+    parser.add_argument("--run-once", choices=("off", "on"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
     model = build_model(args.preset, execution="fast").eval()
-    results = cases(model, args.repeats, args.frames, args.size, args.points)
+    if args.run_once:
+        off = dataclasses.replace(model.execution, **PARTS_OFF)
+        model.set_execution(off if args.run_once == "off" else model.execution)
+        track = _tracker(model, torch.Generator().manual_seed(0), *sizes(args))
+        with torch.no_grad():
+            print(_timed(track)[0])
+        return
+    if args.processes:
+        common = ["--threads", str(args.threads), "--preset", args.preset]
+        common += [
+            "--frames",
+            str(args.frames),
+            "--size",
+            str(args.size),
+            "--points",
+            str(args.points),
+        ]
+        results = {"all (separate processes)": isolated(common, args.repeats)}
+    else:
+        results = cases(model, args.repeats, *sizes(args))
     for name, result in results.items():
         low, high = result["speedup_quartiles"]
         print(
             f"{name:14} off {result['off_median_s']:.3f} s  on {result['on_median_s']:.3f} s  "
-            f"speed-up {result['speedup_median']:.3f} (quartiles {low:.3f}-{high:.3f})  "
-            f"max |diff| {result['max_abs_difference']:.2e}"
+            f"speed-up {result['speedup_median']:.3f} (quartiles {low:.3f}-{high:.3f})"
+            + (
+                f"  max |diff| {result['max_abs_difference']:.2e}"
+                if "max_abs_difference" in result
+                else ""
+            )
         )
     if args.json:
         args.json.write_text(json.dumps({"threads": args.threads, **results}, indent=2) + "\n")

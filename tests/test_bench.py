@@ -60,3 +60,11 @@ def test_fast_execution_parts_benchmark_runs_on_a_tiny_case(tmp_path):
     assert results["all"]["max_abs_difference"] < 1e-4
     assert all(results[name]["speedup_median"] > 0 for name in ("channels_last", "all"))
     assert "speed-up" in done.stdout
+    done = subprocess.run(
+        [*command[:-4], "--repeats", "1", "--threads", "1", "--processes", "--json", str(out)],
+        capture_output=True,
+        text=True,
+    )
+    assert done.returncode == 0, done.stderr
+    isolated = json.loads(out.read_text())["all (separate processes)"]
+    assert isolated["off_median_s"] > 0 and isolated["on_median_s"] > 0
