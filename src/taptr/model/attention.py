@@ -145,15 +145,7 @@ class DeformableAttention(nn.Module):
         spatial_shapes: list[tuple[int, int]],
         execution: Execution,
     ) -> DeformableOutput:
-        """Attends from each query to the memory around its reference point.
-
-        Args:
-            query: (B, Q, C) queries, position embedding already added.
-            reference: (B, Q, 2) reference (x, y) in [0, 1].
-            memory: (B, S, C) flattened multi-scale tokens (values come from here).
-            spatial_shapes: (H_l, W_l) of the L levels.
-            execution: how to run; its ``kernel`` samples the memory.
-        """
+        """`attend` to the `values` of ``memory`` (B, S, C), the flattened tokens."""
         values = self.values(memory, spatial_shapes, execution)
         return self.attend(query, reference, values, spatial_shapes, execution)
 
