@@ -15,7 +15,9 @@ Cases (by default the paper preset, random weights, 512 × 512 frames, 800 point
 - ``all``: the whole tracker on a random video, every part above off against on.
 
 ``python benchmarks/fast_execution_parts.py --repeats 9 --threads 2``; with ``--processes``,
-only the whole tracker, every run in a fresh process (what ``taptr bench`` does).
+only the whole tracker, every run in a fresh process (what ``taptr bench`` does). With
+``--row-block N``, the cases are the encoder, the decoder window and the whole tracker,
+and "off" is the fast execution with MLP row blocks of N rows instead of its own.
 """
 
 from __future__ import annotations
@@ -130,6 +132,27 @@ def cases(
     return results
 
 
+def row_block_cases(
+    model: TAPTR, repeats: int, frames: int, size: int, points: int, rows: int
+) -> dict[str, dict[str, Any]]:
+    """The fast execution with MLP row blocks of ``rows`` (off) against its own (on)."""
+    fast = get_execution("fast")
+    off = dataclasses.replace(fast, row_block=rows)
+    generator = torch.Generator().manual_seed(0)
+    image = torch.randn(1, 3, size, size, generator=generator)
+    with torch.no_grad():
+        maps = model.input_projections(model.backbone(image))
+        runs = {
+            "encoder": (lambda: model.encoder(maps, model.execution), repeats),
+            "decoder": (_decoder_window(model, generator, size, points), repeats),
+            "all": (_tracker(model, generator, frames, size, points), max(1, repeats // 3)),
+        }
+        return {
+            f"{name} (row blocks {rows} -> {fast.row_block})": paired(model, off, fast, run, count)
+            for name, (run, count) in runs.items()
+        }
+
+
 def _decoder_window(
     model: TAPTR, generator: torch.Generator, size: int, points: int
 ) -> Callable[[], torch.Tensor]:
@@ -185,6 +208,12 @@ def main() -> None:
         action="store_true",
         help="only the whole tracker, each run in its own process (--repeats pairs)",
     )
+    parser.add_argument(
+        "--row-block",
+        type=int,
+        metavar="N",
+        help="compare MLP row blocks of N rows (off) with the fast execution's own (on)",
+    )
     parser.add_argument("--run-once", choices=("off", "on"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -208,12 +237,14 @@ def main() -> None:
             str(args.points),
         ]
         results = {"all (separate processes)": isolated(common, args.repeats)}
+    elif args.row_block:
+        results = row_block_cases(model, args.repeats, *sizes(args), args.row_block)
     else:
         results = cases(model, args.repeats, *sizes(args))
     for name, result in results.items():
         low, high = result["speedup_quartiles"]
         print(
-            f"{name:14} off {result['off_median_s']:.3f} s  on {result['on_median_s']:.3f} s  "
+            f"{name:30} off {result['off_median_s']:.3f} s  on {result['on_median_s']:.3f} s  "
             f"speed-up {result['speedup_median']:.3f} (quartiles {low:.3f}-{high:.3f})"
             + (
                 f"  max |diff| {result['max_abs_difference']:.2e}"

@@ -68,3 +68,16 @@ def test_fast_execution_parts_benchmark_runs_on_a_tiny_case(tmp_path):
     assert done.returncode == 0, done.stderr
     isolated = json.loads(out.read_text())["all (separate processes)"]
     assert isolated["off_median_s"] > 0 and isolated["on_median_s"] > 0
+    done = subprocess.run(
+        [*command[:-4], "--repeats", "1", "--threads", "1", "--row-block", "3", "--json", str(out)],
+        capture_output=True,
+        text=True,
+    )
+    assert done.returncode == 0, done.stderr
+    blocks = json.loads(out.read_text())
+    from taptr.model.ops import ROW_BLOCK
+
+    names = [f"{case} (row blocks 3 -> {ROW_BLOCK})" for case in ("encoder", "decoder", "all")]
+    assert set(blocks) == {"threads", *names}
+    # the same products per row; a 3-row product may take another BLAS kernel's rounding
+    assert all(0 <= blocks[name]["max_abs_difference"] < 1e-4 for name in names)

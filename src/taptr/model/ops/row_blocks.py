@@ -11,10 +11,12 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-ROW_BLOCK = 512
-"""Rows per block in the ``fast`` execution: a (512, 2048) float32 hidden block is 4 MB,
-about a core's share of cache (256-1024 measured alike; unblocked, the encoder FFN is 1.5x
-slower on one thread)."""
+ROW_BLOCK = 2048
+"""Rows per block in the ``fast`` execution. Unblocked, the encoder FFN is 1.5x slower on
+one thread; among block sizes, paired runs on two threads (inside encoder blocks of 4,096
+tokens) put 2,048 rows ahead of 512 by 1.03x for the encoder and 1.02x for the whole
+tracker (docs/BENCHMARKS.md), and 4,096 (no blocking inside an encoder block) 1.24x behind
+2,048; the decoder measured within 1% with 512, 1,024 and 2,048."""
 
 ENCODER_BLOCK = 4096
 """Tokens per block of an encoder layer in the ``fast`` execution: everything after the
