@@ -1,5 +1,6 @@
 """The fast execution's inference-only variants equal the plain formulation: row-blocked MLPs
-and encoder layers, the decoder's shared table buffer, channels-last frames."""
+and encoder layers, the decoder's key and value tables made per frame, channels-last
+frames."""
 
 import dataclasses
 
@@ -125,19 +126,10 @@ def test_encoder_layers_take_the_tokens_in_row_blocks(monkeypatch, generator):
     assert blocks == [tokens] * layers
 
 
-def test_decoder_layers_write_their_tables_into_one_buffer(monkeypatch, generator):
-    import taptr.model.ops as ops
+def test_decoder_layers_take_their_tables_from_a_frame_store(monkeypatch, generator):
     from taptr.model.decoder import Decoder
+    from taptr.model.frame_tables import FrameTables
 
-    buffers = []
-    original = ops.projected_table
-
-    def spy(*args, out=None, **kwargs):
-        table = original(*args, out=out, **kwargs)
-        buffers.append(None if out is None else table.data_ptr())
-        return table
-
-    monkeypatch.setattr(ops, "projected_table", spy)
     torch.manual_seed(0)
     model = taptr.build_model("tiny").eval()
     features = model.encode_images(torch.rand(2, 3, 64, 64, generator=generator))
@@ -145,25 +137,22 @@ def test_decoder_layers_write_their_tables_into_one_buffer(monkeypatch, generato
     content = torch.randn(1, 2, 3, 32, generator=generator)
     positions = torch.randn(1, 2, 3, 4, generator=generator)
     tracking = torch.ones(1, 2, 3, dtype=torch.bool)
-
-    def decode():
-        buffers.clear()
-        args = (memory, features.spatial_shapes, content, positions, tracking, tracking)
-        return model.decode_window(*args)
-
+    args = (memory, features.spatial_shapes, content, positions, tracking, tracking)
+    store = FrameTables()
+    store.start_window(10, 11, keep_from=11)
     with torch.no_grad():
-        shared = decode()
-        # one key and one value buffer for all layers
-        assert len(buffers) == 2 * model.num_layers and len(set(buffers)) == 2
-        assert None not in buffers
+        throwaway = model.decode_window(*args)  # a store of its own that keeps nothing
+        kept = model.decode_window(*args, store)
+        assert store.projections == 2 * model.num_layers and store.kept_frames == [11]
         monkeypatch.setattr(Decoder, "prepare_window", lambda *args: [])
-        fresh = decode()
-        assert buffers == [None] * 2 * model.num_layers
-    torch.testing.assert_close(shared.positions, fresh.positions, atol=0, rtol=0)
+        plain = model.decode_window(*args)  # each layer projects the whole memory
+    for tables in (throwaway, kept):
+        torch.testing.assert_close(tables.positions, plain.positions, atol=1e-6, rtol=0)
+        torch.testing.assert_close(tables.visibility_logits, plain.visibility_logits)
     monkeypatch.undo()
     flat = memory.flatten(0, 1)
     standard = taptr.build_model(get_config("tiny").replace(cross_attention="standard"))
-    # no buffer under autograd, for the grid_sample kernel, or without key-aware attention
+    # no store under autograd, for the grid_sample kernel, or without key-aware attention
     for decoder, execution, grad in (
         (model.decoder, "fast", True),
         (model.decoder, "reference", False),
@@ -172,16 +161,21 @@ def test_decoder_layers_write_their_tables_into_one_buffer(monkeypatch, generato
     ):
         with torch.set_grad_enabled(grad):
             prepared = decoder.prepare_window(
-                content, flat, features.spatial_shapes, get_execution(execution)
+                content, flat, features.spatial_shapes, get_execution(execution), store
             )
         assert prepared == []
     with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16):  # products in bfloat16
         assert model.decoder.prepare_window(content, flat, features.spatial_shapes, _fast()) == []
+    with torch.no_grad(), monkeypatch.context() as patch:  # inside torch.compile
+        patch.setattr(torch.compiler, "is_compiling", lambda: True)
+        assert model.decoder.prepare_window(content, flat, features.spatial_shapes, _fast()) == []
     with torch.no_grad():
-        (buffer,) = model.decoder.prepare_window(
-            content, flat, features.spatial_shapes, get_execution("fast")
-        )
-    assert buffer.shape == (2, flat.shape[0] * flat.shape[1], 32)
+        assert model.decoder.prepare_window(
+            content, flat, features.spatial_shapes, _fast(), store
+        ) == [store]
+        store.start_window(10, 12, keep_from=None)  # three frames: not this window's two
+        with pytest.raises(ValueError, match="window of 3 frames; the decoder was given 2"):
+            model.decode_window(*args, store)
 
 
 def test_fast_execution_feeds_the_backbone_channels_last(generator):

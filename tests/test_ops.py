@@ -263,16 +263,29 @@ def test_deform_attn_kernels_agree(generator):
     torch.testing.assert_close(outputs[0], outputs[1])
 
 
-def test_projected_table_writes_into_a_given_buffer(generator):
-    shapes = [(3, 4), (2, 2)]
-    memory = torch.randn(2, 16, 8, generator=generator)
-    projection = torch.nn.Linear(8, 8)
-    buffer = torch.full((32, 8), float("nan"))
+def test_key_aware_attn_on_tables_made_per_image_equals_the_memory(generator):
+    from taptr.model.ops import key_aware_attn
+
+    shapes, _, locations = _random_case(generator, heads=2, channels=4)
+    tokens = sum(h * w for h, w in shapes)
+    memory = torch.randn(2, tokens, 8, dtype=torch.float64, generator=generator)
+    key_proj = torch.nn.Linear(8, 8).double()
+    value_proj = torch.nn.Linear(8, 8).double()
+    queries = torch.randn(2, 5, 2, 4, dtype=torch.float64, generator=generator)
+    args = (queries, memory, key_proj, value_proj, shapes, locations)
     with torch.no_grad():
-        table = projected_table(memory, projection, shapes, heads=2, border=False, out=buffer)
-        expected = projection(memory).reshape(-1, 4)
-    assert table.data_ptr() == buffer.data_ptr() and table.shape == (64, 4)
-    torch.testing.assert_close(table, expected)
+        reference = key_aware_attn("grid_sample", *args)
+        tables = ((key_proj(image), value_proj(image)) for image in memory)  # (S, C) each
+        per_image = key_aware_attn("gather", *args, tables)
+        whole = key_aware_attn("gather", *args)
+    for mine, theirs in ((per_image, reference), (whole, reference)):
+        torch.testing.assert_close(mine[0], theirs[0])
+        torch.testing.assert_close(mine[1], theirs[1])
+    # given tables, the memory is not read
+    with torch.no_grad():
+        tables = [(key_proj(image), value_proj(image)) for image in memory]
+        unread = key_aware_attn("gather", queries, memory.mul(float("nan")), *args[2:], tables)
+    torch.testing.assert_close(unread[0], per_image[0], atol=0, rtol=0)
 
 
 def _table(values: torch.Tensor, shapes, border: bool) -> torch.Tensor:

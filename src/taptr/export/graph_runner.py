@@ -21,6 +21,7 @@ import torch
 from torch import Tensor
 
 from taptr.export.manifest import ExportManifest
+from taptr.model.frame_tables import FrameTables
 from taptr.model.sliding_window import QuerySet, WindowDecoding, run_windows
 from taptr.model.taptr import FrameFeatures
 
@@ -116,8 +117,12 @@ class GraphBackend:
         initial: Tensor,
         tracking: Tensor,
         update: Tensor,
+        tables: FrameTables | None = None,
     ) -> WindowDecoding:
-        """The ``decode_window`` graph; shapes as in `taptr.model.sliding_window.WindowBackend`."""
+        """The ``decode_window`` graph; shapes as in `taptr.model.sliding_window.WindowBackend`.
+
+        The graph projects every frame's keys and values itself, so ``tables`` is not read.
+        """
         inputs = (memory, content, positions, initial, tracking, update)
         window_positions, visibility_logits, next_content = (
             _to_torch(output) for output in self.steps.decode(*map(_to_numpy, inputs))

@@ -14,6 +14,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from taptr.model.execution import Execution
+from taptr.model.frame_tables import LayerTables
 from taptr.model.ops import deform_attn, key_aware_attn, value_table
 from taptr.model.ops.gather import interleaved_sizes
 
@@ -189,7 +190,7 @@ class KeyAwareDeformableAttention(nn.Module):
         memory: Tensor,
         spatial_shapes: list[tuple[int, int]],
         execution: Execution,
-        tables: Tensor | None = None,
+        tables: LayerTables | None = None,
     ) -> DeformableOutput:
         """Attends from each query to keys and values sampled around its reference point.
 
@@ -199,14 +200,18 @@ class KeyAwareDeformableAttention(nn.Module):
             memory: (B, S, C) flattened multi-scale tokens.
             spatial_shapes: (H_l, W_l) of the L levels.
             execution: how to run; its ``kernel`` samples the keys and values.
-            tables: optional (2, B · S, C) buffer for the ``gather`` kernel's key and value
-                tables (`taptr.model.ops.key_aware_attn`).
+            tables: with the ``gather`` kernel, where this layer's key and value tables of
+                each image come from (made once per frame and shared by the windows that
+                hold it, `taptr.model.frame_tables`); without it they are made here.
         """
         batch, queries, _ = query.shape
         m, lv, p = self.num_heads, self.num_levels, self.num_points
         projected = self.query_proj(query).view(batch, queries, m, -1)  # (B, Q, M, D)
         offsets = self.sampling_offsets(query).view(batch, queries, m, lv, p, 2)
         locations = sampling_locations(reference, offsets, spatial_shapes)
+        images = None
+        if tables is not None and execution.kernel == "gather":
+            images = tables.images(memory, self.key_proj, self.value_proj)
         output, logits = key_aware_attn(
             execution.kernel,
             projected,
@@ -215,7 +220,7 @@ class KeyAwareDeformableAttention(nn.Module):
             self.value_proj,
             spatial_shapes,
             locations,
-            tables,
+            images,
         )
         return DeformableOutput(self.output_proj(output), logits, offsets)
 

@@ -29,6 +29,7 @@ from taptr.model.attention import (
     MultiheadAttention,
 )
 from taptr.model.execution import Execution
+from taptr.model.frame_tables import FrameTables, LayerTables, window_store
 from taptr.model.layers import MLP
 from taptr.model.masks import AttentionMasks, attention_masks
 from taptr.model.ops import tracked_point_attention
@@ -135,7 +136,7 @@ class DecoderLayer(nn.Module):
         masks: AttentionMasks,
         update: Tensor,
         execution: Execution,
-        tables: Tensor | None = None,
+        tables: LayerTables | None = None,
     ) -> LayerOutput:
         """Runs one layer.
 
@@ -148,8 +149,8 @@ class DecoderLayer(nn.Module):
             masks: which entries may attend to each other.
             update: (B, W_t, N) entries whose position may change (tracked, after start).
             execution: how to run.
-            tables: optional (2, B·W_t·S, C) buffer for the key-aware cross-attention's key
-                and value tables (`Decoder.prepare_window`).
+            tables: where the key-aware cross-attention's key and value tables come from
+                (`Decoder.prepare_window`), or None to make them from ``memory``.
         """
         x, attended = self._cross(
             content, query_pos, reference, memory, spatial_shapes, execution, tables
@@ -177,11 +178,11 @@ class DecoderLayer(nn.Module):
         memory: Tensor,
         spatial_shapes: list[tuple[int, int]],
         execution: Execution,
-        tables: Tensor | None = None,
+        tables: LayerTables | None = None,
     ) -> tuple[Tensor, DeformableOutput]:
         """Post-normed cross-attention; returns (B, W_t, N, C) and the attention's output.
 
-        ``tables`` (key-aware attention only) is the buffer of `DecoderLayer.forward`.
+        ``tables`` (key-aware attention only): see `DecoderLayer.forward`.
         """
         batch, frames, points, channels = x.shape
         flat = x.reshape(batch * frames, points, channels)  # (B·W_t, N, C)
@@ -290,28 +291,31 @@ class Decoder(nn.Module):
         memory: Tensor,
         spatial_shapes: list[tuple[int, int]],
         execution: Execution,
-    ) -> list[Tensor]:
-        """Tensors prepared once per window for `layer_extras`.
+        tables: FrameTables | None = None,
+    ) -> list[Tensor] | list[FrameTables]:
+        """What is prepared once per window for `layer_extras`.
 
         TAPTRv2 at inference with the ``gather`` kernel and ``execution.shared_tables``:
-        one (2, B·W_t·S, C) buffer that every layer's key-aware attention writes its key
-        and value tables into. Each table is hundreds of megabytes; allocated afresh per
-        layer, each is a new mapping whose every page faults on first write. Otherwise
-        (also under autocast, whose products come out in another dtype) nothing.
+        the store of key and value tables per frame and layer, ``tables`` or a throwaway one
+        (`taptr.model.frame_tables`). Otherwise (also under autocast, whose products come
+        out in another dtype, and inside ``torch.compile``) nothing: each layer projects
+        the whole window's memory.
 
         Args:
             content: (B, W_t, N, C) content at window entry.
             memory: (B·W_t, S, C) encoder memory of the window's frames.
             spatial_shapes: (H_l, W_l) per level.
             execution: how to run.
+            tables: the tracking run's store, started for this window, or None.
         """
         key_aware = isinstance(self.layers[0].cross_attention, KeyAwareDeformableAttention)
         gather = execution.shared_tables and execution.kernel == "gather"
         autocast = torch.is_autocast_enabled(memory.device.type)
-        if not gather or not key_aware or torch.is_grad_enabled() or autocast:
+        # a compiled graph would not replay the store's bookkeeping (kept and reused tables)
+        compiling = torch.compiler.is_compiling()
+        if not gather or not key_aware or torch.is_grad_enabled() or autocast or compiling:
             return []
-        images, tokens, channels = memory.shape
-        return [memory.new_empty(2, images * tokens, channels)]
+        return [window_store(tables, content.shape[1])]
 
     def layer_input(self, index: int, out: Tensor, content: Tensor, execution: Execution) -> Tensor:
         """Layer ``index``'s input (B, W_t, N, C) from the previous output and entry content.
@@ -321,12 +325,14 @@ class Decoder(nn.Module):
         """
         return out if index == 0 else self.update_layer_content(out, content, execution)
 
-    def layer_extras(self, prepared: list[Tensor], reference: Tensor) -> tuple[Tensor, ...]:
-        """A layer's arguments after the common ones: the table buffer, if prepared.
+    def layer_extras(
+        self, index: int, prepared: list[Tensor] | list[FrameTables], reference: Tensor
+    ) -> tuple[Tensor | LayerTables, ...]:
+        """Layer ``index``'s arguments after the common ones: its view of the tables, if any.
 
         ``prepared`` is what `prepare_window` returned, ``reference`` (B, W_t, N, 4) in [0, 1].
         """
-        return tuple(prepared)
+        return tuple(LayerTables(store, index) for store in prepared)
 
     def read_heads(
         self, index: int, result: LayerOutput, previous: Tensor, step: Tensor, execution: Execution
@@ -361,6 +367,7 @@ class Decoder(nn.Module):
         tracking: Tensor,
         update: Tensor,
         execution: Execution,
+        tables: FrameTables | None = None,
     ) -> DecoderOutput:
         """Decodes one window.
 
@@ -372,10 +379,12 @@ class Decoder(nn.Module):
             tracking: (B, W_t, N) entries at or after each point's start frame.
             update: (B, W_t, N) tracking entries after the start frame.
             execution: how to run.
+            tables: the tracking run's key and value tables, started for this window
+                (`taptr.model.frame_tables.FrameTables.start_window`), or None.
         """
         masks = attention_masks(tracking, execution.grouped_point_attention)
         step = update.unsqueeze(-1).to(content.dtype)
-        prepared = self.prepare_window(content, memory, spatial_shapes, execution)
+        prepared = self.prepare_window(content, memory, spatial_shapes, execution, tables)
         reference = positions.sigmoid()
         previous = reference
         out, features = content, content
@@ -383,7 +392,7 @@ class Decoder(nn.Module):
         for index, layer in enumerate(self.layers):
             query_pos = self.query_position(reference, execution)
             x = self.layer_input(index, out, content, execution)
-            extras = self.layer_extras(prepared, reference)
+            extras = self.layer_extras(index, prepared, reference)
             result = layer(
                 x, query_pos, reference, memory, spatial_shapes, masks, update, execution, *extras
             )

@@ -12,8 +12,8 @@ to the encoder, the decoder and their attentions as an argument: no submodule ho
 - ``fast``: the default for inference: deformable attention as weighted row gathers
   (`taptr.model.ops.gather`), point attention on the tracked points of each frame only
   (`taptr.model.ops.point_attention`), MLPs and encoder layers in cache-sized row blocks
-  (`taptr.model.ops.row_blocks`), the decoder's key and value tables written into one
-  buffer per window, frames channels-last into the backbone.
+  (`taptr.model.ops.row_blocks`), the decoder's key and value tables made once per frame
+  and shared by the windows that overlap on it, frames channels-last into the backbone.
 - ``training``: what `taptr.train` builds. The ``grid_sample`` kernel, because its backward
   is about half the cost of the gather kernel's on CPU (``embedding_bag``'s backward sorts
   every index: 2.4 vs 4.0 s per small-preset step); grouped point attention; and row blocks
@@ -46,9 +46,10 @@ class Execution:
         encoder_block: encoder layers at inference take their tokens this many at a time
             after the value table (`taptr.model.encoder.EncoderLayer`); None runs all
             tokens at once.
-        shared_tables: the decoder's layers write their key and value tables into one
-            buffer per window (``gather`` kernel, inference only;
-            `taptr.model.decoder.Decoder.prepare_window`) instead of fresh tensors.
+        shared_tables: the decoder's key and value tables are made once per frame and
+            layer and shared by the overlapping windows that hold the frame (``gather``
+            kernel, inference only; `taptr.model.frame_tables`), instead of each window
+            projecting all of its frames' memory in every layer.
         channels_last: frames enter the backbone in channels-last (NHWC) memory order,
             which oneDNN's CPU convolutions run faster; the feature maps then flatten into
             tokens without a transpose copy. Same values up to rounding.

@@ -26,6 +26,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from taptr.geometry import inverse_sigmoid
+from taptr.model.frame_tables import FrameTables
 from taptr.model.taptr import TAPTR, FrameFeatures
 from taptr.model.trajectory import QuerySet, TrackerState, TrackOutput, Trajectory, finish
 from taptr.model.trajectory import keep_points as keep_points  # part of the driver's API
@@ -105,6 +106,7 @@ class WindowBackend(Protocol):
         initial: Tensor,
         tracking: Tensor,
         update: Tensor,
+        tables: FrameTables | None = None,
     ) -> WindowDecoding:
         """Decodes one window and computes the content handed to the next one.
 
@@ -116,6 +118,8 @@ class WindowBackend(Protocol):
             initial: (B, N, C) each point's initial content (zeros before it starts).
             tracking: (B, W_t, N) bool, entries at or after each point's start frame.
             update: (B, W_t, N) bool, tracking entries after the start frame.
+            tables: the run's store of per-frame key and value tables, started for this
+                window (`taptr.model.frame_tables`); a backend may ignore it.
         """
         ...
 
@@ -156,10 +160,11 @@ class ModelBackend:
         initial: Tensor,
         tracking: Tensor,
         update: Tensor,
+        tables: FrameTables | None = None,
     ) -> WindowDecoding:
         """`TAPTR.decode_window` then `TAPTR.update_content` (as `WindowBackend`)."""
         decoded = self.model.decode_window(
-            memory, spatial_shapes, content, positions, tracking, update
+            memory, spatial_shapes, content, positions, tracking, update, tables
         )
         initial = initial[:, None].expand_as(content)  # (B, W_t, N, C)
         next_content = self.model.update_content(initial, content, decoded.features, update)
@@ -292,6 +297,8 @@ def decode_window(
     memory, spatial_shapes = frames_source(first, last)
     initialise_points(backend, state, FrameFeatures(memory, spatial_shapes), first)
     content = state.content.read(first, last)
+    # the next window normally starts a stride later: its frames from there on are kept
+    state.tables.start_window(first, last, keep_from=first + backend.window_stride)
     decoded = backend.decode_window(
         memory,
         spatial_shapes,
@@ -300,6 +307,7 @@ def decode_window(
         state.initial_content,
         tracking,
         update,
+        state.tables,
     )
     for layer in range(backend.num_layers):
         state.positions[layer].write(first, decoded.positions[layer], update)

@@ -21,6 +21,7 @@ from taptr.model.backbone import Backbone, InputProjections
 from taptr.model.decoder import Decoder, DecoderOutput
 from taptr.model.encoder import Encoder
 from taptr.model.execution import DEFAULT_EXECUTION, Execution, get_execution
+from taptr.model.frame_tables import FrameTables
 from taptr.model.layers import MLP
 from taptr.model.query_init import QueryInitializer
 
@@ -160,6 +161,7 @@ class TAPTR(nn.Module):
         positions: Tensor,
         tracking: Tensor,
         update: Tensor,
+        tables: FrameTables | None = None,
     ) -> DecoderOutput:
         """Runs the decoder over one window.
 
@@ -170,6 +172,8 @@ class TAPTR(nn.Module):
             positions: (B, W_t, N, 4) position logits at window entry.
             tracking: (B, W_t, N) bool, entries at or after each point's start frame.
             update: (B, W_t, N) bool, tracking entries after the start frame.
+            tables: the run's key and value tables, started for this window, or None
+                (`taptr.model.frame_tables`).
         """
         return self.decoder(
             content,
@@ -179,6 +183,7 @@ class TAPTR(nn.Module):
             tracking,
             update,
             self.execution,
+            tables,
         )
 
     def update_content(

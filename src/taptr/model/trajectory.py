@@ -15,6 +15,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from taptr.model.frame_tables import FrameTables
+
 
 class Trajectory:
     """Per-frame values of one quantity, from frame ``first`` on, plus the shared future.
@@ -118,6 +120,8 @@ class TrackerState:
         updated_positions: per decoder layer, the APU-updated position logits (B, N, 4);
             empty without the position update.
         next_window: index of the next window to decode.
+        tables: the decoder's key and value tables of the frames the next window shares
+            with the last one (`taptr.model.frame_tables`).
     """
 
     queries: QuerySet
@@ -129,6 +133,7 @@ class TrackerState:
     visibility: list[Trajectory]
     updated_positions: list[Trajectory] = field(default_factory=list)
     next_window: int = 0
+    tables: FrameTables = field(default_factory=FrameTables)
 
 
 class TrackOutput(NamedTuple):

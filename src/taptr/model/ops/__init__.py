@@ -15,6 +15,9 @@ execution asks for the faster ones:
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
+import torch
 from torch import Tensor, nn
 
 from taptr.model.ops.gather import (
@@ -92,7 +95,7 @@ def key_aware_attn(
     value_proj: nn.Linear,
     spatial_shapes: list[tuple[int, int]],
     locations: Tensor,
-    tables: Tensor | None = None,
+    tables: Iterable[tuple[Tensor, Tensor]] | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Key-aware deformable attention over projected memory.
 
@@ -104,20 +107,33 @@ def key_aware_attn(
         value_proj: the value projection.
         spatial_shapes: (H_l, W_l) per level.
         locations: (B, Q, M, L, P, 2) in [0, 1].
-        tables: optional (2, B · S, C) buffer the ``gather`` kernel writes the key and the
-            value table into (without gradients; see `projected_table`).
+        tables: ``gather`` only: each image's (S, C) keys and values, already projected,
+            in image order (`taptr.model.frame_tables`), each used before the next is
+            taken; the memory is then not read.
 
     Returns:
         output (B, Q, C) and pre-softmax logits (B, Q, M, L, P).
     """
     heads = locations.shape[2]
+    if kernel == "gather" and tables is not None:
+        channels = queries.shape[-1]
+        per_image = [
+            gather_key_aware_attn(
+                queries[image : image + 1],
+                keys.view(-1, channels),  # (S·M, D) gather rows
+                values.view(-1, channels),
+                spatial_shapes,
+                locations[image : image + 1],
+                border=False,
+            )
+            for image, (keys, values) in enumerate(tables)
+        ]
+        outputs, logits = zip(*per_image, strict=True)
+        return torch.cat(outputs), torch.cat(logits)
     if kernel == "gather":
         # two tables for a few hundred points: no border (the module doc of `gather`)
-        key_out, value_out = (None, None) if tables is None else tables
-        keys = projected_table(memory, key_proj, spatial_shapes, heads, border=False, out=key_out)
-        values = projected_table(
-            memory, value_proj, spatial_shapes, heads, border=False, out=value_out
-        )
+        keys = projected_table(memory, key_proj, spatial_shapes, heads, border=False)
+        values = projected_table(memory, value_proj, spatial_shapes, heads, border=False)
         return gather_key_aware_attn(queries, keys, values, spatial_shapes, locations, border=False)
     shape = (*memory.shape[:2], heads, -1)  # (B, S, M, D)
     return key_aware_ms_deform_attn(

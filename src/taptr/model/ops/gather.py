@@ -58,7 +58,6 @@ def projected_table(
     heads: int,
     *,
     border: bool = True,
-    out: Tensor | None = None,
 ) -> Tensor:
     """``projection(memory)`` split into heads as gather rows, with or without the border.
 
@@ -74,10 +73,6 @@ def projected_table(
         heads: attention heads M.
         border: `padded_table`'s zero border (see the module docstring); without it the
             table is the projection's rows, (B · S · M, C / M).
-        out: optional (B · S, C) buffer the borderless table is written into when no
-            gradient is needed. The decoder's tables are hundreds of megabytes: a fresh
-            allocation of that size is a fresh mapping whose every page faults on first
-            write, so the decoder's layers share one buffer instead.
 
     Returns:
         (B · Σ(H_l + 3)(W_l + 3) · M, C / M), or (B · S · M, C / M) without the border.
@@ -90,7 +85,7 @@ def projected_table(
         if differentiable:
             return projection(memory).reshape(-1, channels // heads)
         flat = memory.reshape(-1, channels)  # (B·S, C)
-        rows = torch.addmm(projection.bias, flat, projection.weight.t(), out=out)
+        rows = torch.addmm(projection.bias, flat, projection.weight.t())
         return rows.view(-1, channels // heads)
     if differentiable:
         return padded_table(projection(memory).view(batch, tokens, heads, -1), spatial_shapes)

@@ -22,6 +22,7 @@ from taptr.geometry import inverse_sigmoid
 from taptr.model.attention import DeformableAttention, MultiheadAttention
 from taptr.model.decoder import Decoder, DecoderLayer, LayerOutput
 from taptr.model.execution import Execution
+from taptr.model.frame_tables import FrameTables
 from taptr.model.layers import MLP
 from taptr.model.masks import AttentionMasks
 from taptr.model.position_update import Refined
@@ -169,10 +170,12 @@ class V1Decoder(Decoder):
         memory: Tensor,
         spatial_shapes: list[tuple[int, int]],
         execution: Execution,
+        tables: FrameTables | None = None,
     ) -> list[Tensor]:
         """v1: the cost volume's L maps (B·W_t, N, H_l, W_l) from the window-entry content.
 
-        None without the cost volume. See `Decoder.prepare_window` for the arguments.
+        None without the cost volume. See `Decoder.prepare_window` for the arguments; v1's
+        standard cross-attention has no key tables, so ``tables`` is not read.
         """
         if self.cost_volume is None:
             return []
@@ -184,10 +187,13 @@ class V1Decoder(Decoder):
         """v1 applies the content updater from the first layer on (the index is unused)."""
         return self.update_layer_content(out, content, execution)
 
-    def layer_extras(self, prepared: list[Tensor], reference: Tensor) -> tuple[Tensor, ...]:
+    def layer_extras(
+        self, index: int, prepared: list[Tensor], reference: Tensor
+    ) -> tuple[Tensor, ...]:
         """v1: the (B, W_t, N, K) cost-volume samples around the layer's input reference.
 
         Args:
+            index: the layer (unused: every layer samples the same maps).
             prepared: the maps of `prepare_window` (none without the cost volume).
             reference: (B, W_t, N, 4) the layer's input reference in [0, 1].
 
