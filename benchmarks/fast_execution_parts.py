@@ -230,14 +230,8 @@ def main() -> None:
         return
     if args.processes:
         common = ["--threads", str(args.threads), "--preset", args.preset]
-        common += [
-            "--frames",
-            str(args.frames),
-            "--size",
-            str(args.size),
-            "--points",
-            str(args.points),
-        ]
+        for flag, value in zip(("--frames", "--size", "--points"), sizes(args), strict=True):
+            common += [flag, str(value)]
         results = {"all (separate processes)": isolated(common, args.repeats)}
     elif args.row_block:
         results = row_block_cases(model, args.repeats, *sizes(args), args.row_block)

@@ -209,9 +209,8 @@ class KeyAwareDeformableAttention(nn.Module):
         projected = self.query_proj(query).view(batch, queries, m, -1)  # (B, Q, M, D)
         offsets = self.sampling_offsets(query).view(batch, queries, m, lv, p, 2)
         locations = sampling_locations(reference, offsets, spatial_shapes)
-        images = None
-        if tables is not None and execution.kernel == "gather":
-            images = tables.images(memory, self.key_proj, self.value_proj)
+        # lazy: nothing is projected unless the gather kernel reads them
+        images = None if tables is None else tables.images(memory, self.key_proj, self.value_proj)
         output, logits = key_aware_attn(
             execution.kernel,
             projected,
