@@ -9,14 +9,14 @@ medians does not cancel.
 
 Cases (by default the paper preset, random weights, 512 × 512 frames, 800 points):
 
-- ``channels_last``: backbone and input projections on one frame;
+- ``channels_last``, ``in_place_norms``: backbone and input projections on one frame;
 - ``encoder_block``: the deformable encoder on one frame's feature maps;
 - ``shared_tables``: the whole tracker on a random video (the tables are shared across
   windows);
 - ``all``: the whole tracker on a random video, every part above off against on.
 
-``python benchmarks/fast_execution_parts.py --repeats 9 --threads 2``; with ``--processes``,
-only the whole tracker, every run in a fresh process (what ``taptr bench`` does). With
+With ``--processes``, only the whole tracker, every run in a fresh process (what ``taptr
+bench`` does), every part off against on, or with ``--part NAME`` that part alone. With
 ``--row-block N``, the cases are the encoder, the decoder window and the whole tracker,
 and "off" is the fast execution with MLP row blocks of N rows instead of its own.
 """
@@ -42,7 +42,12 @@ from taptr.model.frames import EncodedFrames
 from taptr.model.sliding_window import QuerySet, run_windows
 from taptr.model.taptr import TAPTR, normalize_frames
 
-PARTS_OFF = {"encoder_block": None, "shared_tables": False, "channels_last": False}
+PARTS_OFF = {
+    "encoder_block": None,
+    "shared_tables": False,
+    "channels_last": False,
+    "in_place_norms": False,
+}
 
 
 def _timed(run: Callable[[], torch.Tensor]) -> tuple[float, torch.Tensor]:
@@ -101,16 +106,17 @@ def cases(
     image = torch.randn(1, 3, size, size, generator=generator)
     results = {}
     with torch.no_grad():
-        off = dataclasses.replace(fast, channels_last=False)
 
         def backbone() -> torch.Tensor:
-            if model.execution.channels_last:
-                return model.input_projections(
-                    model.backbone(image.contiguous(memory_format=torch.channels_last))
-                )[0]
-            return model.input_projections(model.backbone(image))[0]
+            execution = model.execution
+            frames = image
+            if execution.channels_last:
+                frames = image.contiguous(memory_format=torch.channels_last)
+            return model.input_projections(model.backbone(frames, execution.in_place_norms))[0]
 
-        results["channels_last"] = paired(model, off, fast, backbone, repeats)
+        for part in ("channels_last", "in_place_norms"):
+            off = dataclasses.replace(fast, **{part: False})
+            results[part] = paired(model, off, fast, backbone, repeats)
         maps = model.input_projections(model.backbone(image))
         off = dataclasses.replace(fast, encoder_block=None)
         results["encoder_block"] = paired(
@@ -211,6 +217,11 @@ def main() -> None:
         help="only the whole tracker, each run in its own process (--repeats pairs)",
     )
     parser.add_argument(
+        "--part",
+        choices=sorted(PARTS_OFF),
+        help="with --processes: only this part off against on (default: all of them)",
+    )
+    parser.add_argument(
         "--row-block",
         type=int,
         metavar="N",
@@ -222,7 +233,8 @@ def main() -> None:
     torch.manual_seed(0)
     model = build_model(args.preset, execution="fast").eval()
     if args.run_once:
-        off = dataclasses.replace(model.execution, **PARTS_OFF)
+        parts_off = {args.part: PARTS_OFF[args.part]} if args.part else PARTS_OFF
+        off = dataclasses.replace(model.execution, **parts_off)
         model.set_execution(off if args.run_once == "off" else model.execution)
         track = _tracker(model, torch.Generator().manual_seed(0), *sizes(args))
         with torch.no_grad():
@@ -232,7 +244,10 @@ def main() -> None:
         common = ["--threads", str(args.threads), "--preset", args.preset]
         for flag, value in zip(("--frames", "--size", "--points"), sizes(args), strict=True):
             common += [flag, str(value)]
-        results = {"all (separate processes)": isolated(common, args.repeats)}
+        if args.part:
+            common += ["--part", args.part]
+        name = f"{args.part or 'all'} (separate processes)"
+        results = {name: isolated(common, args.repeats)}
     elif args.row_block:
         results = row_block_cases(model, args.repeats, *sizes(args), args.row_block)
     else:

@@ -54,8 +54,10 @@ def test_fast_execution_parts_benchmark_runs_on_a_tiny_case(tmp_path):
     done = subprocess.run([*command, "--json", str(out)], capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
     results = json.loads(out.read_text())
-    assert set(results) == {"threads", "channels_last", "encoder_block", "shared_tables", "all"}
-    for name in ("encoder_block", "shared_tables"):  # the same arithmetic, bit for bit
+    cases = {"channels_last", "in_place_norms", "encoder_block", "shared_tables", "all"}
+    assert set(results) == {"threads", *cases}
+    # the same arithmetic, bit for bit (the tiny preset's group norms ignore in_place_norms)
+    for name in ("encoder_block", "shared_tables", "in_place_norms"):
         assert results[name]["max_abs_difference"] == 0.0
     assert results["all"]["max_abs_difference"] < 1e-4
     assert all(results[name]["speedup_median"] > 0 for name in ("channels_last", "all"))
@@ -68,6 +70,12 @@ def test_fast_execution_parts_benchmark_runs_on_a_tiny_case(tmp_path):
     assert done.returncode == 0, done.stderr
     isolated = json.loads(out.read_text())["all (separate processes)"]
     assert isolated["off_median_s"] > 0 and isolated["on_median_s"] > 0
+    part = ["--processes", "--part", "in_place_norms", "--json", str(out)]
+    done = subprocess.run(
+        [*command[:-4], "--repeats", "1", "--threads", "1", *part], capture_output=True, text=True
+    )
+    assert done.returncode == 0, done.stderr
+    assert set(json.loads(out.read_text())) == {"threads", "in_place_norms (separate processes)"}
     done = subprocess.run(
         [*command[:-4], "--repeats", "1", "--threads", "1", "--row-block", "3", "--json", str(out)],
         capture_output=True,
@@ -81,3 +89,21 @@ def test_fast_execution_parts_benchmark_runs_on_a_tiny_case(tmp_path):
     assert set(blocks) == {"threads", *names}
     # the same products per row; a 3-row product may take another BLAS kernel's rounding
     assert all(0 <= blocks[name]["max_abs_difference"] < 1e-4 for name in names)
+
+
+def test_gemm_floor_benchmark_runs_on_a_tiny_case(tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "benchmarks" / "gemm_floor.py"
+    out = tmp_path / "floor.json"
+    arguments = ["--preset", "tiny", "--size", "64", "--points", "5", "--frames", "9"]
+    command = [sys.executable, str(script), *arguments, "--threads", "1", "--seconds", "0.2"]
+    done = subprocess.run([*command, "--json", str(out)], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    result = json.loads(out.read_text())
+    assert result["gflop_per_frame"] > 0 and result["sustained_gflops"] > 0
+    expected = result["gflop_per_frame"] / result["sustained_gflops"]
+    assert abs(result["floor_at_sustained_s"] - expected) < 1e-9
+    assert "floor" in done.stdout

@@ -99,7 +99,14 @@ def test_two_gloo_processes_average_like_one_process_on_the_combined_batch(
         assert torch.equal(grad, rank1[name]), name  # all-reduced: the same everywhere
         # a parameter that no loss term reaches has no gradient alone, zeros under DDP
         expected = single.get(name, torch.zeros_like(grad))
-        torch.testing.assert_close(grad, expected, rtol=1e-4, atol=1e-7, msg=name)
+        # Relative to the whole gradient, not element by element: a batch of two and two
+        # batches of one round differently (1e-6 in the outputs), and the L1 position term's
+        # sign flips where a prediction sits on its target (the query frames), so a few
+        # elements move by much more; one process alone, batches of one against batches of
+        # two, differs by 0.6% of a gradient's norm. A missing all-reduce or a sum in place
+        # of the mean is off by 50% or more.
+        error = float((grad - expected).norm())
+        assert error <= 0.02 * float(expected.norm()) + 1e-7, (name, error)
 
     state = load_training_checkpoint(tmp_path / "two" / "checkpoint.pt")
     assert state["step"] == 1 and len(state["rng"]) == 2

@@ -13,7 +13,8 @@ to the encoder, the decoder and their attentions as an argument: no submodule ho
   (`taptr.model.ops.gather`), point attention on the tracked points of each frame only
   (`taptr.model.ops.point_attention`), MLPs and encoder layers in cache-sized row blocks
   (`taptr.model.ops.row_blocks`), the decoder's key and value tables made once per frame
-  and shared by the windows that overlap on it, frames channels-last into the backbone.
+  and shared by the windows that overlap on it, frames channels-last into the backbone,
+  its batch norms in place.
 - ``training``: what `taptr.train` builds. The ``grid_sample`` kernel, because its backward
   is about half the cost of the gather kernel's on CPU (``embedding_bag``'s backward sorts
   every index: 2.4 vs 4.0 s per small-preset step); grouped point attention; and row blocks
@@ -53,6 +54,9 @@ class Execution:
         channels_last: frames enter the backbone in channels-last (NHWC) memory order,
             which oneDNN's CPU convolutions run faster; the feature maps then flatten into
             tokens without a transpose copy. Same values up to rounding.
+        in_place_norms: the ResNet-50's frozen batch norms write into the convolution
+            outputs they normalise (one pass, no new tensor) instead of two fresh
+            tensors each; inference only, the same values (`taptr.model.backbone`).
     """
 
     name: str
@@ -62,6 +66,7 @@ class Execution:
     encoder_block: int | None = None
     shared_tables: bool = False
     channels_last: bool = False
+    in_place_norms: bool = False
 
 
 EXECUTIONS: dict[str, Execution] = {
@@ -74,6 +79,7 @@ EXECUTIONS: dict[str, Execution] = {
         encoder_block=ENCODER_BLOCK,
         shared_tables=True,
         channels_last=True,
+        in_place_norms=True,
     ),
     "training": Execution("training", "grid_sample", True, ROW_BLOCK),
 }

@@ -121,7 +121,7 @@ class TAPTR(nn.Module):
         """
         if self.execution.channels_last:
             images = images.contiguous(memory_format=torch.channels_last)
-        maps = self.input_projections(self.backbone(images))
+        maps = self.input_projections(self.backbone(images, self.execution.in_place_norms))
         spatial_shapes = [(m.shape[-2], m.shape[-1]) for m in maps]
         return FrameFeatures(self.encoder(maps, self.execution), spatial_shapes)
 
