@@ -193,5 +193,7 @@ def test_fast_execution_feeds_the_backbone_channels_last(generator):
             images
         )
     assert seen == [True, False]
-    torch.testing.assert_close(fast, plain.memory, atol=1e-5, rtol=0)
+    # another convolution algorithm: float rounding, relative to the features' scale
+    scale = float(plain.memory.abs().max())
+    torch.testing.assert_close(fast, plain.memory, atol=1e-5 * scale, rtol=0)
     assert [e.channels_last for e in EXECUTIONS.values()] == [False, True, False]
