@@ -42,18 +42,27 @@ def test_benchmark_suite_lists_every_case_and_runs_the_smoke_case(tmp_path, caps
     assert case["agreement"]["visibility_decisions_equal"]
 
 
-def test_fast_execution_parts_benchmark_runs_on_a_tiny_case(tmp_path):
+TINY_CASE = ["--preset", "tiny", "--size", "64", "--points", "5", "--frames", "9", "--threads", "1"]
+"""A tiny case for the scripts in benchmarks/."""
+
+
+def _benchmark_script(name: str, out, *arguments: str) -> tuple[dict, str]:
+    """Runs ``benchmarks/<name>`` on `TINY_CASE`; returns its JSON (written to ``out``) and
+    its standard output."""
     import subprocess
     import sys
     from pathlib import Path
 
-    script = Path(__file__).resolve().parents[1] / "benchmarks" / "fast_execution_parts.py"
-    out = tmp_path / "parts.json"
-    arguments = ["--preset", "tiny", "--size", "64", "--points", "5", "--frames", "9"]
-    command = [sys.executable, str(script), *arguments, "--repeats", "2", "--threads", "1"]
-    done = subprocess.run([*command, "--json", str(out)], capture_output=True, text=True)
+    script = Path(__file__).resolve().parents[1] / "benchmarks" / name
+    command = [sys.executable, str(script), *TINY_CASE, *arguments, "--json", str(out)]
+    done = subprocess.run(command, capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
-    results = json.loads(out.read_text())
+    return json.loads(out.read_text()), done.stdout
+
+
+def test_fast_execution_parts_benchmark_runs_on_a_tiny_case(tmp_path):
+    out = tmp_path / "parts.json"
+    results, stdout = _benchmark_script("fast_execution_parts.py", out, "--repeats", "2")
     cases = {"channels_last", "in_place_norms", "encoder_block", "shared_tables", "all"}
     assert set(results) == {"threads", *cases}
     # the same arithmetic, bit for bit (the tiny preset's group norms ignore in_place_norms)
@@ -61,28 +70,13 @@ def test_fast_execution_parts_benchmark_runs_on_a_tiny_case(tmp_path):
         assert results[name]["max_abs_difference"] == 0.0
     assert results["all"]["max_abs_difference"] < 1e-4
     assert all(results[name]["speedup_median"] > 0 for name in ("channels_last", "all"))
-    assert "speed-up" in done.stdout
-    done = subprocess.run(
-        [*command[:-4], "--repeats", "1", "--threads", "1", "--processes", "--json", str(out)],
-        capture_output=True,
-        text=True,
-    )
-    assert done.returncode == 0, done.stderr
-    isolated = json.loads(out.read_text())["all (separate processes)"]
+    assert "speed-up" in stdout
+    once = ["fast_execution_parts.py", out, "--repeats", "1"]
+    isolated = _benchmark_script(*once, "--processes")[0]["all (separate processes)"]
     assert isolated["off_median_s"] > 0 and isolated["on_median_s"] > 0
-    part = ["--processes", "--part", "in_place_norms", "--json", str(out)]
-    done = subprocess.run(
-        [*command[:-4], "--repeats", "1", "--threads", "1", *part], capture_output=True, text=True
-    )
-    assert done.returncode == 0, done.stderr
-    assert set(json.loads(out.read_text())) == {"threads", "in_place_norms (separate processes)"}
-    done = subprocess.run(
-        [*command[:-4], "--repeats", "1", "--threads", "1", "--row-block", "3", "--json", str(out)],
-        capture_output=True,
-        text=True,
-    )
-    assert done.returncode == 0, done.stderr
-    blocks = json.loads(out.read_text())
+    part = _benchmark_script(*once, "--processes", "--part", "in_place_norms")[0]
+    assert set(part) == {"threads", "in_place_norms (separate processes)"}
+    blocks = _benchmark_script(*once, "--row-block", "3")[0]
     from taptr.model.ops import ROW_BLOCK
 
     names = [f"{case} (row blocks 3 -> {ROW_BLOCK})" for case in ("encoder", "decoder", "all")]
@@ -92,18 +86,8 @@ def test_fast_execution_parts_benchmark_runs_on_a_tiny_case(tmp_path):
 
 
 def test_gemm_floor_benchmark_runs_on_a_tiny_case(tmp_path):
-    import subprocess
-    import sys
-    from pathlib import Path
-
-    script = Path(__file__).resolve().parents[1] / "benchmarks" / "gemm_floor.py"
-    out = tmp_path / "floor.json"
-    arguments = ["--preset", "tiny", "--size", "64", "--points", "5", "--frames", "9"]
-    command = [sys.executable, str(script), *arguments, "--threads", "1", "--seconds", "0.2"]
-    done = subprocess.run([*command, "--json", str(out)], capture_output=True, text=True)
-    assert done.returncode == 0, done.stderr
-    result = json.loads(out.read_text())
+    result, stdout = _benchmark_script("gemm_floor.py", tmp_path / "floor.json", "--seconds", "0.2")
     assert result["gflop_per_frame"] > 0 and result["sustained_gflops"] > 0
     expected = result["gflop_per_frame"] / result["sustained_gflops"]
     assert abs(result["floor_at_sustained_s"] - expected) < 1e-9
-    assert "floor" in done.stdout
+    assert "floor" in stdout
