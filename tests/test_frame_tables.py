@@ -82,10 +82,17 @@ def test_tracking_projects_each_frame_once_per_layer(monkeypatch, generator):
         torch.rand(2, 3, 2, generator=generator) * 0.8 + 0.1,
         torch.ones(2, 3, dtype=torch.bool),
     )
-    calls = []
-    original = Store._project
+    calls, keeps = [], []
+    original, start = Store._project, Store.start_window
     monkeypatch.setattr(
         Store, "_project", lambda self, *args: calls.append(1) or original(self, *args)
+    )
+    monkeypatch.setattr(
+        Store,
+        "start_window",
+        lambda self, first, last, keep_from: (
+            keeps.append(keep_from) or start(self, first, last, keep_from)
+        ),
     )
 
     def track(execution):
@@ -95,8 +102,10 @@ def test_tracking_projects_each_frame_once_per_layer(monkeypatch, generator):
             return run_windows(model, queries, frames, source, torch.float32)
 
     shared = track(get_execution("fast"))
-    # frames 0-7, then 8-11 (4-7 kept), then 6, 7 (not kept: the stride says 8 on) and 12-13
-    assert len(calls) == (8 + 4 + 4) * model.num_layers * 2
+    # frames 0-7, then 8-11 (4-7 kept), then 12-13 (6-11 kept: the last window is shifted
+    # back to 6-13, which the driver knows)
+    assert len(calls) == (8 + 4 + 2) * model.num_layers * 2
+    assert keeps == [4, 6, None]  # the last window keeps nothing
     calls.clear()
     plain = track(dataclasses.replace(get_execution("fast"), shared_tables=False))
     assert calls == []

@@ -272,6 +272,7 @@ def decode_window(
     first: int,
     last: int,
     frames_source: FrameSource,
+    next_first: int | None = None,
 ) -> None:
     """Decodes frames first..last and updates ``state`` in place.
 
@@ -282,6 +283,10 @@ def decode_window(
         last: last frame of the window (inclusive).
         frames_source: gives the memory (B, W_t, S, C) of frames first..last; not called
             when the window is skipped.
+        next_first: the first frame of the next window, or past ``last`` when there is
+            none, where the caller knows it (a video of known length): the key and value
+            tables of the frames from there on are kept for it. None (a stream) assumes
+            the next window starts a stride later.
     """
     backend = as_backend(model)
     index = state.next_window
@@ -297,8 +302,9 @@ def decode_window(
     memory, spatial_shapes = frames_source(first, last)
     initialise_points(backend, state, FrameFeatures(memory, spatial_shapes), first)
     content = state.content.read(first, last)
-    # the next window normally starts a stride later: its frames from there on are kept
-    state.tables.start_window(first, last, keep_from=first + backend.window_stride)
+    # without a known next window, the next one normally starts a stride later
+    keep_from = first + backend.window_stride if next_first is None else next_first
+    state.tables.start_window(first, last, keep_from=keep_from if keep_from <= last else None)
     decoded = backend.decode_window(
         memory,
         spatial_shapes,
@@ -348,7 +354,7 @@ def run_windows(
     for (first, last), following in zip(
         ranges, ranges[1:] + [(num_frames, num_frames)], strict=True
     ):
-        decode_window(backend, state, first, last, frames)
+        decode_window(backend, state, first, last, frames, next_first=following[0])
         state.content.release(before=following[0])  # content of earlier frames is never read again
         if on_window is not None:
             on_window()
