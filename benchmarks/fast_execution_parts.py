@@ -106,17 +106,9 @@ def cases(
     image = torch.randn(1, 3, size, size, generator=generator)
     results = {}
     with torch.no_grad():
-
-        def backbone() -> torch.Tensor:
-            execution = model.execution
-            frames = image
-            if execution.channels_last:
-                frames = image.contiguous(memory_format=torch.channels_last)
-            return model.input_projections(model.backbone(frames, execution.in_place_norms))[0]
-
         for part in ("channels_last", "in_place_norms"):
             off = dataclasses.replace(fast, **{part: False})
-            results[part] = paired(model, off, fast, backbone, repeats)
+            results[part] = paired(model, off, fast, lambda: model.feature_maps(image)[0], repeats)
         maps = model.input_projections(model.backbone(image))
         off = dataclasses.replace(fast, encoder_block=None)
         results["encoder_block"] = paired(

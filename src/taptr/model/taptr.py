@@ -119,11 +119,19 @@ class TAPTR(nn.Module):
         Returns:
             `FrameFeatures` whose memory is (N, S, C) (one image per row).
         """
-        if self.execution.channels_last:
-            images = images.contiguous(memory_format=torch.channels_last)
-        maps = self.input_projections(self.backbone(images, self.execution.in_place_norms))
+        maps = self.feature_maps(images)
         spatial_shapes = [(m.shape[-2], m.shape[-1]) for m in maps]
         return FrameFeatures(self.encoder(maps, self.execution), spatial_shapes)
+
+    def feature_maps(self, images: Tensor) -> list[Tensor]:
+        """Backbone and input projections the way the execution says.
+
+        Shape:
+            (N, 3, H, W) ImageNet-normalised frames → L maps (N, C, H_l, W_l).
+        """
+        if self.execution.channels_last:
+            images = images.contiguous(memory_format=torch.channels_last)
+        return self.input_projections(self.backbone(images, self.execution.in_place_norms))
 
     def encode(self, frames: Tensor, chunk_size: int | None = None) -> FrameFeatures:
         """Encodes every frame of a batch of videos independently.
