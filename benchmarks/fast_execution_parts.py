@@ -11,8 +11,10 @@ Cases (by default the paper preset, random weights, 512 × 512 frames, 800 point
 
 - ``channels_last``, ``in_place_norms``: backbone and input projections on one frame;
 - ``encoder_block``: the deformable encoder on one frame's feature maps;
+- ``onednn_linear (encoder)``: the same encoder, linear layers through oneDNN or BLAS;
 - ``shared_tables``: the whole tracker on a random video (the tables are shared across
   windows);
+- ``onednn_linear``: the whole tracker, every linear layer through oneDNN or BLAS;
 - ``all``: the whole tracker on a random video, every part above off against on.
 
 With ``--processes``, only the whole tracker, every run in a fresh process (what ``taptr
@@ -47,6 +49,7 @@ PARTS_OFF = {
     "shared_tables": False,
     "channels_last": False,
     "in_place_norms": False,
+    "onednn_linear": False,
 }
 
 
@@ -100,7 +103,7 @@ def isolated(arguments: list[str], repeats: int) -> dict[str, Any]:
 def cases(
     model: TAPTR, repeats: int, frames: int, size: int, points: int
 ) -> dict[str, dict[str, Any]]:
-    """The four cases of the module docstring, on ``size`` × ``size`` frames."""
+    """The cases of the module docstring, on ``size`` × ``size`` frames."""
     fast = get_execution("fast")
     generator = torch.Generator().manual_seed(0)
     image = torch.randn(1, 3, size, size, generator=generator)
@@ -114,10 +117,21 @@ def cases(
         results["encoder_block"] = paired(
             model, off, fast, lambda: model.encoder(maps, model.execution), repeats
         )
+        off = dataclasses.replace(fast, onednn_linear=False)
+        results["onednn_linear (encoder)"] = paired(
+            model, off, fast, lambda: model.encoder(maps, model.execution), repeats
+        )
         # tables are shared across windows, so this part is timed on the whole tracker
         results["shared_tables"] = paired(
             model,
             dataclasses.replace(fast, shared_tables=False),
+            fast,
+            _tracker(model, generator, frames, size, points),
+            max(1, repeats // 3),
+        )
+        results["onednn_linear"] = paired(
+            model,
+            dataclasses.replace(fast, onednn_linear=False),
             fast,
             _tracker(model, generator, frames, size, points),
             max(1, repeats // 3),

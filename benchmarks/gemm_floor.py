@@ -3,10 +3,12 @@
 Nearly all of the tracker's FLOPs are matrix products and convolutions, so the time they
 would take at the machine's matrix-product rate is a floor on the whole run. This script
 measures, in one process: the best-of-five rate of one 2048³ product (what ``taptr bench``
-calls the peak), the rate sustained over ten seconds by the products the paper model runs
-most (its encoder FFN's 2,048-row blocks, its 256 × 256 projections), the tracker's FLOPs
-per frame (``torch.utils.flop_counter``), and the tracker's own time per frame. It prints
-the floor (FLOPs at the sustained rate) next to the measured time.
+calls the peak: the faster of the BLAS and oneDNN), the rates sustained over ten seconds by
+the products the paper model runs most (its encoder FFN's 2,048-row blocks, its 256 × 256
+projections) through the BLAS (``F.linear``) and through oneDNN (`taptr.model.ops.dense`),
+the tracker's FLOPs per frame (``torch.utils.flop_counter``), and the tracker's own time
+per frame. It prints the floor (FLOPs at the faster sustained rate) next to the measured
+time.
 
 ``python benchmarks/gemm_floor.py --threads 2``
 """
@@ -29,13 +31,14 @@ from fast_execution_parts import _tracker
 
 from taptr.apps.benchmark import peak_flops
 from taptr.model.build import build_model
+from taptr.model.ops.dense import linear
 
 SHAPES = ((2048, 256, 2048), (2048, 2048, 256), (4096, 256, 256))
 """(rows, in, out) of the products timed for the sustained rate."""
 
 
-def sustained_rate(seconds: float) -> float:
-    """FLOP/s of `SHAPES` run in turn for ``seconds`` (bias included, as ``F.linear``)."""
+def sustained_rate(seconds: float, onednn: bool) -> float:
+    """FLOP/s of `SHAPES` run in turn for ``seconds``, through oneDNN or the BLAS."""
     generator = torch.Generator().manual_seed(0)
     cases = [
         (torch.randn(m, k, generator=generator), torch.randn(n, k, generator=generator))
@@ -45,7 +48,7 @@ def sustained_rate(seconds: float) -> float:
     start = time.perf_counter()
     while time.perf_counter() - start < seconds:
         for x, w in cases:
-            torch.nn.functional.linear(x, w)
+            linear(x, w, None, onednn=onednn)
             flops += 2 * x.shape[0] * x.shape[1] * w.shape[0]
     return flops / (time.perf_counter() - start)
 
@@ -74,21 +77,28 @@ def main() -> None:
             track()
     flops_per_frame = counter.get_total_flops() / args.frames
     peak = peak_flops(args.threads)
-    sustained = sustained_rate(args.seconds)
+    with torch.no_grad():
+        rates = {
+            name: sustained_rate(args.seconds, name == "onednn") for name in ("blas", "onednn")
+        }
+    sustained = max(rates.values())
     results = {
         "threads": args.threads,
         "seconds_per_frame": seconds_per_frame,
         "gflop_per_frame": flops_per_frame / 1e9,
         "peak_gflops": peak / 1e9,
         "sustained_gflops": sustained / 1e9,
+        "sustained_gflops_blas": rates["blas"] / 1e9,
+        "sustained_gflops_onednn": rates["onednn"] / 1e9,
         "floor_at_peak_s": flops_per_frame / peak,
         "floor_at_sustained_s": flops_per_frame / sustained,
     }
     print(f"tracker {seconds_per_frame:.3f} s/frame, {flops_per_frame / 1e9:.1f} GFLOP/frame")
+    print(", ".join(f"{name} sustained {rate / 1e9:.0f} GFLOP/s" for name, rate in rates.items()))
     for name, rate, floor in (
         ("peak (best of five 2048^3)", peak, results["floor_at_peak_s"]),
         (
-            f"sustained ({args.seconds:.0f} s, the model's shapes)",
+            f"sustained ({args.seconds:.0f} s, the model's shapes, the faster path)",
             sustained,
             results["floor_at_sustained_s"],
         ),

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 
+import torch
+
 from taptr.cli.main import main
 
 
@@ -64,7 +66,10 @@ def test_fast_execution_parts_benchmark_runs_on_a_tiny_case(tmp_path):
     out = tmp_path / "parts.json"
     results, stdout = _benchmark_script("fast_execution_parts.py", out, "--repeats", "2")
     cases = {"channels_last", "in_place_norms", "encoder_block", "shared_tables", "all"}
+    cases |= {"onednn_linear", "onednn_linear (encoder)"}
     assert set(results) == {"threads", *cases}
+    # the same sums in another order
+    assert results["onednn_linear"]["max_abs_difference"] < 1e-4
     # the same arithmetic, bit for bit (the tiny preset's group norms ignore in_place_norms)
     for name in ("encoder_block", "shared_tables", "in_place_norms"):
         assert results[name]["max_abs_difference"] == 0.0
@@ -90,4 +95,17 @@ def test_gemm_floor_benchmark_runs_on_a_tiny_case(tmp_path):
     assert result["gflop_per_frame"] > 0 and result["sustained_gflops"] > 0
     expected = result["gflop_per_frame"] / result["sustained_gflops"]
     assert abs(result["floor_at_sustained_s"] - expected) < 1e-9
-    assert "floor" in stdout
+    paths = (result["sustained_gflops_blas"], result["sustained_gflops_onednn"])
+    assert result["sustained_gflops"] == max(paths) and min(paths) > 0
+    assert "floor" in stdout and "onednn sustained" in stdout
+
+
+def test_the_machine_names_its_cpu_model(tmp_path):
+    from taptr.apps.benchmark import cpu_name, machine
+
+    cpuinfo = tmp_path / "cpuinfo"
+    cpuinfo.write_text("processor\t: 0\nvendor_id\t: AuthenticAMD\nmodel name\t: AMD EPYC 9R14\n")
+    assert cpu_name(cpuinfo) == "AMD EPYC 9R14"
+    cpuinfo.write_text("processor\t: 0\n")  # no model name: the architecture instead
+    assert cpu_name(cpuinfo) == cpu_name(tmp_path / "missing") != ""
+    assert machine()["cpu_capability"] == torch.backends.cpu.get_cpu_capability()

@@ -15,14 +15,15 @@ from taptr.model.ops import ROW_BLOCK, blocked_mlp
 from taptr.model.ops.row_blocks import ENCODER_BLOCK
 
 
-def test_row_blocks_equal_all_rows_at_once():
+@pytest.mark.parametrize("onednn", [False, True])
+def test_row_blocks_equal_all_rows_at_once(onednn):
     torch.manual_seed(0)
     mlp = MLP(16, 64, 8, num_layers=3)
     x = torch.randn(2, 333, 16)  # 666 rows: several blocks and a partial last one
     with torch.no_grad():
-        blocked = mlp(x, row_block=100)
+        blocked = mlp(x, _fast(row_block=100, onednn_linear=onednn))
         plain = mlp(x)
-        direct = blocked_mlp(mlp.layers, x.view(-1, 16), 100)
+        direct = blocked_mlp(mlp.layers, x.view(-1, 16), 100, onednn)
     assert blocked.shape == (2, 333, 8)
     torch.testing.assert_close(blocked, plain, atol=1e-6, rtol=1e-6)
     torch.testing.assert_close(direct, blocked.view(-1, 8), atol=0, rtol=0)
@@ -38,7 +39,7 @@ def test_row_blocks_are_skipped_when_autograd_records(monkeypatch):
     torch.manual_seed(0)
     mlp = MLP(4, 8, 2, num_layers=2)
     x = torch.randn(10, 4, requires_grad=True)
-    mlp(x, row_block=3).square().sum().backward()
+    mlp(x, _fast(row_block=3)).square().sum().backward()
     assert x.grad is not None and all(p.grad is not None for p in mlp.parameters())
 
 
@@ -56,20 +57,20 @@ def test_executions_set_row_blocks():
     ]
 
 
-def test_the_model_hands_its_row_block_to_every_mlp(monkeypatch):
+def test_the_model_hands_its_execution_to_every_mlp(monkeypatch):
     import taptr.model.layers as layers
 
     seen = []
     original = layers.MLP.forward
 
-    def spy(self, x, row_block=None):
-        seen.append(row_block)
-        return original(self, x, row_block)
+    def spy(self, x, execution=None):
+        seen.append(None if execution is None else execution.name)
+        return original(self, x, execution)
 
     monkeypatch.setattr(layers.MLP, "forward", spy)
     model = taptr.build_model("tiny").eval()
     with torch.no_grad():
-        for name, expected in (("fast", ROW_BLOCK), ("reference", None)):
+        for name in ("fast", "reference"):
             seen.clear()
             model.set_execution(name)
             features = model.encode_images(torch.zeros(1, 3, 64, 64))
@@ -84,7 +85,7 @@ def test_the_model_hands_its_row_block_to_every_mlp(monkeypatch):
                 tracking,
             )
             model.update_content(content, content, content, tracking)
-            assert seen and set(seen) == {expected}
+            assert seen and set(seen) == {name}
 
 
 def test_unknown_execution_names_the_choices():

@@ -171,9 +171,9 @@ def test_the_execution_picks_every_attention_kernel(monkeypatch, execution, kern
     used = []
 
     def spy(function):
-        def wrapped(kernel, *args):
+        def wrapped(kernel, *args, **kwargs):
             used.append(kernel)
-            return function(kernel, *args)
+            return function(kernel, *args, **kwargs)
 
         return wrapped
 

@@ -144,8 +144,13 @@ def test_model_options_reach_the_predictor(monkeypatch, video):
     [(model, before)] = compiled
     assert model is predictor.model
     plain = Predictor(before, device="cpu")
+    # the compiled graph's products run through the BLAS, the eager ones through oneDNN
+    # (taptr.model.ops.dense): the same sums in another order, tracks in pixels
     torch.testing.assert_close(
-        predictor.track(video, QUERIES).tracks, plain.track(video, QUERIES).tracks
+        predictor.track(video, QUERIES).tracks,
+        plain.track(video, QUERIES).tracks,
+        atol=1e-4,
+        rtol=1e-5,
     )
 
 

@@ -16,6 +16,7 @@ from torch import Tensor, nn
 from taptr.model.execution import Execution
 from taptr.model.frame_tables import LayerTables
 from taptr.model.ops import deform_attn, key_aware_attn, value_table
+from taptr.model.ops.dense import linear
 from taptr.model.ops.gather import interleaved_sizes
 
 
@@ -41,6 +42,11 @@ def _offset_grid_bias(num_heads: int, num_levels: int, num_points: int) -> Tenso
     grid = grid.view(num_heads, 1, 1, 2).repeat(1, num_levels, num_points, 1)
     grid *= torch.arange(1, num_points + 1, dtype=torch.float32).view(1, 1, -1, 1)
     return grid.flatten()
+
+
+def project(layer: nn.Linear, x: Tensor, execution: Execution) -> Tensor:
+    """``layer(x)``, as a oneDNN inner product where the execution asks for it."""
+    return linear(x, layer.weight, layer.bias, onednn=execution.onednn_linear)
 
 
 def sampling_locations(
@@ -105,7 +111,12 @@ class DeformableAttention(nn.Module):
             execution: how to run.
         """
         return value_table(
-            execution.kernel, memory, self.value_proj, spatial_shapes, self.num_heads
+            execution.kernel,
+            memory,
+            self.value_proj,
+            spatial_shapes,
+            self.num_heads,
+            onednn=execution.onednn_linear,
         )
 
     def attend(
@@ -129,13 +140,15 @@ class DeformableAttention(nn.Module):
         """
         batch, queries, _ = query.shape
         m, lv, p = self.num_heads, self.num_levels, self.num_points
-        offsets = self.sampling_offsets(query).view(batch, queries, m, lv, p, 2)
-        logits = self.attention_weights(query).view(batch, queries, m, lv * p)
+        offsets = project(self.sampling_offsets, query, execution).view(batch, queries, m, lv, p, 2)
+        logits = project(self.attention_weights, query, execution).view(batch, queries, m, lv * p)
         weights = logits.softmax(-1).view(batch, queries, m, lv, p)
         locations = sampling_locations(reference, offsets, spatial_shapes)
         output = deform_attn(execution.kernel, values, spatial_shapes, locations, weights)
         return DeformableOutput(
-            self.output_proj(output), logits.view(batch, queries, m, lv, p), offsets
+            project(self.output_proj, output, execution),
+            logits.view(batch, queries, m, lv, p),
+            offsets,
         )
 
     def forward(
@@ -206,11 +219,16 @@ class KeyAwareDeformableAttention(nn.Module):
         """
         batch, queries, _ = query.shape
         m, lv, p = self.num_heads, self.num_levels, self.num_points
-        projected = self.query_proj(query).view(batch, queries, m, -1)  # (B, Q, M, D)
-        offsets = self.sampling_offsets(query).view(batch, queries, m, lv, p, 2)
+        projected = project(self.query_proj, query, execution).view(batch, queries, m, -1)
+        offsets = project(self.sampling_offsets, query, execution).view(batch, queries, m, lv, p, 2)
         locations = sampling_locations(reference, offsets, spatial_shapes)
         # lazy: nothing is projected unless the gather kernel reads them
-        images = None if tables is None else tables.images(memory, self.key_proj, self.value_proj)
+        onednn = execution.onednn_linear
+        images = (
+            None
+            if tables is None
+            else tables.images(memory, self.key_proj, self.value_proj, onednn=onednn)
+        )
         output, logits = key_aware_attn(
             execution.kernel,
             projected,
@@ -220,8 +238,9 @@ class KeyAwareDeformableAttention(nn.Module):
             spatial_shapes,
             locations,
             images,
+            onednn=onednn,
         )
-        return DeformableOutput(self.output_proj(output), logits, offsets)
+        return DeformableOutput(project(self.output_proj, output, execution), logits, offsets)
 
 
 class MultiheadAttention(nn.Module):
@@ -244,8 +263,20 @@ class MultiheadAttention(nn.Module):
         nn.init.xavier_uniform_(self.in_proj_weight)
         nn.init.zeros_(self.out_proj.bias)
 
-    def forward(self, query: Tensor, key: Tensor, value: Tensor, allowed: Tensor | None) -> Tensor:
-        """Scaled dot-product attention; ``allowed[b, 0, i, j]`` False blocks i → j."""
+    def forward(
+        self,
+        query: Tensor,
+        key: Tensor,
+        value: Tensor,
+        allowed: Tensor | None,
+        *,
+        onednn: bool = False,
+    ) -> Tensor:
+        """Scaled dot-product attention; ``allowed[b, 0, i, j]`` False blocks i → j.
+
+        ``onednn`` runs the projections as oneDNN inner products where that applies
+        (`taptr.model.ops.dense`).
+        """
         batch, length, channels = query.shape
         w_q, w_k, w_v = self.in_proj_weight.chunk(3)
         b_q, b_k, b_v = self.in_proj_bias.chunk(3)
@@ -253,7 +284,7 @@ class MultiheadAttention(nn.Module):
         def heads(x: Tensor, w: Tensor, b: Tensor) -> Tensor:
             # (B, L, C) → (B, M, L, D)
             return (
-                F.linear(x, w, b)
+                linear(x, w, b, onednn=onednn)
                 .view(batch, -1, self.num_heads, channels // self.num_heads)
                 .transpose(1, 2)
             )
@@ -264,4 +295,5 @@ class MultiheadAttention(nn.Module):
             heads(value, w_v, b_v),
             attn_mask=allowed,
         )  # (B, M, L, D)
-        return self.out_proj(attended.transpose(1, 2).reshape(batch, length, channels))
+        merged = attended.transpose(1, 2).reshape(batch, length, channels)  # (B, L, C)
+        return linear(merged, self.out_proj.weight, self.out_proj.bias, onednn=onednn)

@@ -17,6 +17,7 @@ here is the reference formulation and calls `taptr.model.ops` where the executio
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import torch
@@ -159,15 +160,15 @@ class DecoderLayer(nn.Module):
         if self.position_update is not None and self.position_embed is not None:
             # the APU's steps 1-3 (taptr.model.position_update), then the re-embedding
             delta = self.position_update(
-                attended.logits, attended.offsets, spatial_shapes, execution.row_block
+                attended.logits, attended.offsets, spatial_shapes, execution
             )
             moved = move_reference(reference, delta.view(*reference.shape[:-1], 2), update)
             reference, displacement = moved
             embedded = point_embedding(reference, x.shape[-1] // 2, self.temperature)
-            query_pos = self.position_embed(embedded, execution.row_block)
-        x = self._temporal(x, query_pos, masks.temporal)
+            query_pos = self.position_embed(embedded, execution)
+        x = self._temporal(x, query_pos, masks.temporal, execution)
         x = self._points(x, query_pos, masks, execution)
-        x = self.norm_ffn(x + self.ffn(x, execution.row_block))
+        x = self.norm_ffn(x + self.ffn(x, execution))
         return LayerOutput(x, reference, displacement)
 
     def _cross(
@@ -197,13 +198,16 @@ class DecoderLayer(nn.Module):
         x = self.norm_cross(flat + attended.output).view(batch, frames, points, channels)
         return x, attended
 
-    def _temporal(self, x: Tensor, query_pos: Tensor, allowed: Tensor | None) -> Tensor:
+    def _temporal(
+        self, x: Tensor, query_pos: Tensor, allowed: Tensor | None, execution: Execution
+    ) -> Tensor:
         if self.temporal_attention is None or self.norm_temporal is None:
             return x
         batch, frames, points, channels = x.shape
         q = (x + query_pos).transpose(1, 2).reshape(batch * points, frames, channels)
         v = x.transpose(1, 2).reshape(batch * points, frames, channels)  # (B·N, W_t, C)
-        x = self.norm_temporal(v + self.temporal_attention(q, q, v, allowed))
+        attended = self.temporal_attention(q, q, v, allowed, onednn=execution.onednn_linear)
+        x = self.norm_temporal(v + attended)
         return x.view(batch, points, frames, channels).transpose(1, 2)
 
     def _points(
@@ -215,10 +219,11 @@ class DecoderLayer(nn.Module):
         q = (x + query_pos).reshape(batch * frames, points, channels)
         v = x.reshape(batch * frames, points, channels)  # (B·W_t, N, C)
         tracked = masks.frame_tracking
+        attention = functools.partial(self.point_attention, onednn=execution.onednn_linear)
         if execution.grouped_point_attention and not bool(tracked.all()):
-            x = tracked_point_attention(self.point_attention, self.norm_points, q, v, tracked)
+            x = tracked_point_attention(attention, self.norm_points, q, v, tracked)
         else:
-            x = self.norm_points(v + self.point_attention(q, q, v, masks.spatial))
+            x = self.norm_points(v + attention(q, q, v, masks.spatial))
         return x.view(batch, frames, points, channels)
 
 
@@ -279,11 +284,11 @@ class Decoder(nn.Module):
     def query_position(self, reference: Tensor, execution: Execution) -> Tensor:
         """Query position embedding of a reference (B, W_t, N, 4) in [0, 1]; (B, W_t, N, C)."""
         embedded = point_embedding(reference, self.d_model // 2, self.temperature)
-        return self.position_embed(embedded, execution.row_block)
+        return self.position_embed(embedded, execution)
 
     def update_layer_content(self, out: Tensor, content: Tensor, execution: Execution) -> Tensor:
         """A layer's input: the previous output plus ``content_updater``'s update."""
-        return out + self.content_updater(torch.cat((out, content), -1), execution.row_block)
+        return out + self.content_updater(torch.cat((out, content), -1), execution)
 
     def prepare_window(
         self,
@@ -350,11 +355,10 @@ class Decoder(nn.Module):
             The refined positions, (B, W_t, N, 3) visibility logits and the (B, W_t, N, C)
             features the heads read.
         """
-        row_block = execution.row_block
         features = fuse_displacement(
-            self.update_fuser, result.content, result.displacement, self.temperature, row_block
+            self.update_fuser, result.content, result.displacement, self.temperature, execution
         )
-        delta = self.position_heads[index](features, row_block) * step
+        delta = self.position_heads[index](features, execution) * step
         refined = self.refine(delta, result.reference, previous)
         return refined, self.visibility_heads[index](features), features
 

@@ -95,7 +95,7 @@ class EncoderLayer(nn.Module):
             tokens + position, reference, values, spatial_shapes, execution
         ).output
         tokens = self.norm_attention(tokens + attended)
-        return self.norm_ffn(tokens + self.ffn(tokens, execution.row_block))
+        return self.norm_ffn(tokens + self.ffn(tokens, execution))
 
 
 class Encoder(nn.Module):

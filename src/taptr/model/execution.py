@@ -14,7 +14,7 @@ to the encoder, the decoder and their attentions as an argument: no submodule ho
   (`taptr.model.ops.point_attention`), MLPs and encoder layers in cache-sized row blocks
   (`taptr.model.ops.row_blocks`), the decoder's key and value tables made once per frame
   and shared by the windows that overlap on it, frames channels-last into the backbone,
-  its batch norms in place.
+  its batch norms in place, linear layers as oneDNN inner products on x86 CPUs.
 - ``training``: what `taptr.train` builds. The ``grid_sample`` kernel, because its backward
   is about half the cost of the gather kernel's on CPU (``embedding_bag``'s backward sorts
   every index: 2.4 vs 4.0 s per small-preset step); grouped point attention; and row blocks
@@ -57,6 +57,10 @@ class Execution:
         in_place_norms: the ResNet-50's frozen batch norms write into the convolution
             outputs they normalise (one pass, no new tensor) instead of two fresh
             tensors each; inference only, the same values (`taptr.model.backbone`).
+        onednn_linear: linear layers at inference run as oneDNN inner products on x86
+            CPUs in float32 (`taptr.model.ops.dense`): on the AMD EPYC host measured, twice
+            the rate of the MKL product ``F.linear`` runs there. Elsewhere, and where
+            autograd records, they run ``F.linear``. Same values up to rounding.
     """
 
     name: str
@@ -67,6 +71,7 @@ class Execution:
     shared_tables: bool = False
     channels_last: bool = False
     in_place_norms: bool = False
+    onednn_linear: bool = False
 
 
 EXECUTIONS: dict[str, Execution] = {
@@ -80,6 +85,7 @@ EXECUTIONS: dict[str, Execution] = {
         shared_tables=True,
         channels_last=True,
         in_place_norms=True,
+        onednn_linear=True,
     ),
     "training": Execution("training", "grid_sample", True, ROW_BLOCK),
 }

@@ -21,6 +21,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
+from taptr.model.ops.dense import linear, onednn_applies
+
 KeyValue = tuple[Tensor, Tensor]
 """One image's key and value tables, each (S, C): the memory's rows through one layer's
 key and value projections, bias included."""
@@ -68,7 +70,13 @@ class FrameTables:
         return sorted({frame for _, _, frame in self._kept})
 
     def images(
-        self, layer: int, memory: Tensor, key_proj: nn.Linear, value_proj: nn.Linear
+        self,
+        layer: int,
+        memory: Tensor,
+        key_proj: nn.Linear,
+        value_proj: nn.Linear,
+        *,
+        onednn: bool = False,
     ) -> Iterator[KeyValue]:
         """Layer ``layer``'s tables of each image of the window, in order, one at a time.
 
@@ -80,6 +88,7 @@ class FrameTables:
             memory: (B·W_t, S, C) memory of the window's frames, image b·W_t + t.
             key_proj: the layer's key projection.
             value_proj: the layer's value projection.
+            onednn: project through oneDNN where that applies (`taptr.model.ops.dense`).
 
         Yields:
             (keys, values), each (S, C), for images 0 .. B·W_t − 1.
@@ -91,20 +100,26 @@ class FrameTables:
             keep = self.keep_from is not None and frame >= self.keep_from
             pair = self._kept.get(key) if keep else self._kept.pop(key, None)
             if pair is None:
-                pair = self._project(memory[image], key_proj, value_proj)
+                pair = self._project(memory[image], key_proj, value_proj, onednn)
                 if keep:
                     self._kept[key] = pair
             yield pair[0], pair[1]
             if not keep:  # this layer was the last to read it
                 self._spare.append(pair)
 
-    def _project(self, memory: Tensor, key_proj: nn.Linear, value_proj: nn.Linear) -> Tensor:
+    def _project(
+        self, memory: Tensor, key_proj: nn.Linear, value_proj: nn.Linear, onednn: bool
+    ) -> Tensor:
         """(S, C) memory → its keys and values (2, S, C), bias included, without gradients."""
         self.projections += 1
         pair = self._empty((2, *memory.shape), memory)
         with torch.no_grad():
-            torch.addmm(key_proj.bias, memory, key_proj.weight.t(), out=pair[0])
-            torch.addmm(value_proj.bias, memory, value_proj.weight.t(), out=pair[1])
+            for projection, table in zip((key_proj, value_proj), pair, strict=True):
+                if onednn and onednn_applies(memory, projection.weight):
+                    # oneDNN writes a fresh tensor: copied into the reused pair (see __init__)
+                    table.copy_(linear(memory, projection.weight, projection.bias, onednn=True))
+                else:
+                    torch.addmm(projection.bias, memory, projection.weight.t(), out=table)
         return pair
 
     def _empty(self, shape: tuple[int, ...], like: Tensor) -> Tensor:
@@ -122,10 +137,10 @@ class LayerTables(NamedTuple):
     layer: int
 
     def images(
-        self, memory: Tensor, key_proj: nn.Linear, value_proj: nn.Linear
+        self, memory: Tensor, key_proj: nn.Linear, value_proj: nn.Linear, *, onednn: bool = False
     ) -> Iterator[KeyValue]:
         """`FrameTables.images` for this layer."""
-        return self.store.images(self.layer, memory, key_proj, value_proj)
+        return self.store.images(self.layer, memory, key_proj, value_proj, onednn=onednn)
 
 
 def window_store(tables: FrameTables | None, frames: int) -> FrameTables:

@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import itertools
 
-import torch.nn.functional as F
 from torch import Tensor, nn
 
+from taptr.model.execution import Execution
+from taptr.model.ops.dense import linear
 from taptr.model.ops.row_blocks import blocked_mlp, use_row_blocks
 
 
@@ -22,22 +23,24 @@ class MLP(nn.Module):
         dims = [in_dim] + [hidden_dim] * (num_layers - 1) + [out_dim]
         self.layers = nn.ModuleList(nn.Linear(a, b) for a, b in itertools.pairwise(dims))
 
-    def forward(self, x: Tensor, row_block: int | None = None) -> Tensor:
+    def forward(self, x: Tensor, execution: Execution | None = None) -> Tensor:
         """Applies the layers.
 
         Args:
             x: (..., in_dim) rows.
-            row_block: the execution's row block (`taptr.model.execution.Execution`); when
-                set, inference takes the rows in blocks of this many
-                (`taptr.model.ops.row_blocks`, the same arithmetic per row). None runs
-                all rows at once.
+            execution: how inference runs them (`taptr.model.execution.Execution`): with a
+                ``row_block``, the rows in blocks of this many (`taptr.model.ops.row_blocks`,
+                the same arithmetic per row); with ``onednn_linear``, the products through
+                oneDNN (`taptr.model.ops.dense`). None runs all rows at once with
+                ``F.linear``, the reference.
         """
+        onednn = execution is not None and execution.onednn_linear
+        row_block = None if execution is None else execution.row_block
         if use_row_blocks(self, x, row_block):
             assert row_block is not None
             rows = x.reshape(-1, x.shape[-1])  # (R, in_dim)
-            return blocked_mlp(self.layers, rows, row_block).view(*x.shape[:-1], -1)
+            return blocked_mlp(self.layers, rows, row_block, onednn).view(*x.shape[:-1], -1)
+        last = len(self.layers) - 1
         for i, layer in enumerate(self.layers):
-            x = layer(x)
-            if i < len(self.layers) - 1:
-                x = F.relu(x)
+            x = linear(x, layer.weight, layer.bias, onednn=onednn, relu=i < last)
         return x

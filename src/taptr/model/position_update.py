@@ -32,6 +32,7 @@ import torch
 from torch import Tensor, nn
 
 from taptr.geometry import clamp_to_unit, inverse_sigmoid
+from taptr.model.execution import Execution
 from taptr.model.layers import MLP
 from taptr.model.position_encoding import point_embedding
 
@@ -78,7 +79,7 @@ class PositionUpdate(nn.Module):
         logits: Tensor,
         offsets: Tensor,
         spatial_shapes: list[tuple[int, int]],
-        row_block: int | None = None,
+        execution: Execution | None = None,
     ) -> Tensor:
         """Returns Δ (x, y) in normalised image units; nothing is detached.
 
@@ -86,12 +87,12 @@ class PositionUpdate(nn.Module):
             logits: (B, Q, M, L, P) pre-softmax cross-attention logits.
             offsets: (B, Q, M, L, P, 2) sampling offsets (x, y) in feature pixels.
             spatial_shapes: (H_l, W_l) per level.
-            row_block: the execution's MLP row block (`taptr.model.layers.MLP`).
+            execution: how the disentangler MLP runs (`taptr.model.layers.MLP`).
         """
         moves = normalize_offsets(offsets, spatial_shapes)  # (B, Q, M, L, P, 2)
         if self.disentangler is not None:
             flat_logits = logits.flatten(2)  # (B, Q, M·L·P), order (head, level, point)
-            weights = self.disentangler(flat_logits, row_block).softmax(-1)
+            weights = self.disentangler(flat_logits, execution).softmax(-1)
             return (weights.unsqueeze(-1) * moves.flatten(2, 4)).sum(2)
         weights = logits.flatten(3).softmax(-1)  # (B, Q, M, L·P), per-head content weights
         per_head = (weights.unsqueeze(-1) * moves.flatten(3, 4)).sum(3)  # (B, Q, M, 2)
@@ -129,7 +130,7 @@ def fuse_displacement(
     content: Tensor,
     displacement: Tensor | None,
     temperature: float,
-    row_block: int | None = None,
+    execution: Execution | None = None,
 ) -> Tensor:
     """Step 4: the features the heads read, the content fused with d's embedding.
 
@@ -138,7 +139,7 @@ def fuse_displacement(
         content: (B, W_t, N, C) the layer's output.
         displacement: (B, W_t, N, 2) the masked displacement d, or None without the APU.
         temperature: sine temperature of the embedding.
-        row_block: the execution's MLP row block.
+        execution: how the fuser MLP runs (`taptr.model.layers.MLP`).
 
     Returns:
         (B, W_t, N, C).
@@ -146,7 +147,7 @@ def fuse_displacement(
     if fuser is None or displacement is None:
         return content
     embedded = point_embedding(displacement, content.shape[-1] // 2, temperature)
-    return fuser(torch.cat((content, embedded), dim=-1), row_block)
+    return fuser(torch.cat((content, embedded), dim=-1), execution)
 
 
 class Refined(NamedTuple):

@@ -209,6 +209,6 @@ class TAPTR(nn.Module):
             (B, W_t, N, C).
         """
         joined = torch.cat((initial, content, features), dim=-1)
-        delta = self.window_updater(joined, self.execution.row_block)
+        delta = self.window_updater(joined, self.execution)
         delta = delta * update.unsqueeze(-1).to(delta.dtype)
         return content + F.dropout(delta, self.window_dropout, self.training)

@@ -10,7 +10,8 @@ execution asks for the faster ones:
   lays the projected values out for a kernel and `deform_attn` samples them;
   `key_aware_attn` takes the memory and its projections; each runs the kernel it is given;
 - point self-attention on each frame's tracked points only (`point_attention`);
-- MLPs in cache-sized row blocks (`row_blocks`).
+- MLPs in cache-sized row blocks (`row_blocks`);
+- linear layers as oneDNN inner products on x86 CPUs (`dense`).
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from collections.abc import Iterable
 import torch
 from torch import Tensor, nn
 
+from taptr.model.ops.dense import linear
 from taptr.model.ops.gather import (
     gather_deform_attn,
     gather_key_aware_attn,
@@ -44,6 +46,8 @@ def value_table(
     value_proj: nn.Linear,
     spatial_shapes: list[tuple[int, int]],
     heads: int,
+    *,
+    onednn: bool = False,
 ) -> Tensor:
     """The memory's projected values in the layout ``kernel`` samples (`deform_attn`).
 
@@ -53,14 +57,16 @@ def value_table(
         value_proj: the value projection.
         spatial_shapes: (H_l, W_l) per level.
         heads: attention heads M.
+        onednn: project through oneDNN where that applies (`dense`).
 
     Returns:
         ``gather``: the bordered table (B · Σ(H_l + 3)(W_l + 3) · M, C / M) of
         `projected_table`; ``grid_sample``: (B, S, M, C / M).
     """
     if kernel == "gather":
-        return projected_table(memory, value_proj, spatial_shapes, heads)
-    return value_proj(memory).view(*memory.shape[:2], heads, -1)
+        return projected_table(memory, value_proj, spatial_shapes, heads, onednn=onednn)
+    values = linear(memory, value_proj.weight, value_proj.bias, onednn=onednn)
+    return values.view(*memory.shape[:2], heads, -1)
 
 
 def deform_attn(
@@ -96,6 +102,8 @@ def key_aware_attn(
     spatial_shapes: list[tuple[int, int]],
     locations: Tensor,
     tables: Iterable[tuple[Tensor, Tensor]] | None = None,
+    *,
+    onednn: bool = False,
 ) -> tuple[Tensor, Tensor]:
     """Key-aware deformable attention over projected memory.
 
@@ -110,6 +118,7 @@ def key_aware_attn(
         tables: ``gather`` only: each image's (S, C) keys and values, already projected,
             in image order (`taptr.model.frame_tables`), each used before the next is
             taken; the memory is then not read.
+        onednn: project through oneDNN where that applies (`dense`).
 
     Returns:
         output (B, Q, C) and pre-softmax logits (B, Q, M, L, P).
@@ -132,14 +141,16 @@ def key_aware_attn(
         return torch.cat(outputs), torch.cat(logits)
     if kernel == "gather":
         # two tables for a few hundred points: no border (the module doc of `gather`)
-        keys = projected_table(memory, key_proj, spatial_shapes, heads, border=False)
-        values = projected_table(memory, value_proj, spatial_shapes, heads, border=False)
+        keys = projected_table(memory, key_proj, spatial_shapes, heads, border=False, onednn=onednn)
+        values = projected_table(
+            memory, value_proj, spatial_shapes, heads, border=False, onednn=onednn
+        )
         return gather_key_aware_attn(queries, keys, values, spatial_shapes, locations, border=False)
     shape = (*memory.shape[:2], heads, -1)  # (B, S, M, D)
     return key_aware_ms_deform_attn(
         queries,
-        key_proj(memory).view(shape),
-        value_proj(memory).view(shape),
+        linear(memory, key_proj.weight, key_proj.bias, onednn=onednn).view(shape),
+        linear(memory, value_proj.weight, value_proj.bias, onednn=onednn).view(shape),
         spatial_shapes,
         locations,
     )

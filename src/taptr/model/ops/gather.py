@@ -24,6 +24,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from taptr.model.ops.dense import linear
+
 CHUNK_ELEMENTS = 1 << 22
 """Largest intermediate of sampled keys, in elements (16 MB in float32: below glibc's
 largest mmap threshold, 32 MB, so the chunks reuse heap memory instead of each mapping
@@ -58,6 +60,7 @@ def projected_table(
     heads: int,
     *,
     border: bool = True,
+    onednn: bool = False,
 ) -> Tensor:
     """``projection(memory)`` split into heads as gather rows, with or without the border.
 
@@ -73,6 +76,8 @@ def projected_table(
         heads: attention heads M.
         border: `padded_table`'s zero border (see the module docstring); without it the
             table is the projection's rows, (B · S · M, C / M).
+        onednn: run the product as a oneDNN inner product where that applies
+            (`taptr.model.ops.dense`).
 
     Returns:
         (B · Σ(H_l + 3)(W_l + 3) · M, C / M), or (B · S · M, C / M) without the border.
@@ -84,12 +89,15 @@ def projected_table(
     if not border:
         if differentiable:
             return projection(memory).reshape(-1, channels // heads)
+        if onednn:
+            rows = linear(memory, projection.weight, projection.bias, onednn=True)
+            return rows.reshape(-1, channels // heads)
         flat = memory.reshape(-1, channels)  # (B·S, C)
         rows = torch.addmm(projection.bias, flat, projection.weight.t())
         return rows.view(-1, channels // heads)
     if differentiable:
         return padded_table(projection(memory).view(batch, tokens, heads, -1), spatial_shapes)
-    product = torch.matmul(memory, projection.weight.t())  # (B, S, C) without the bias
+    product = linear(memory, projection.weight, None, onednn=onednn)  # (B, S, C), no bias
     padded_sizes = [(h + 3) * (w + 3) for h, w in spatial_shapes]
     table = memory.new_empty(batch, sum(padded_sizes), channels)
     start, padded_start = 0, 0

@@ -11,6 +11,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from taptr.model.ops.dense import linear
+
 ROW_BLOCK = 2048
 """Rows per block in the ``fast`` execution. Unblocked, the encoder FFN is 1.5x slower on
 one thread; among block sizes, paired runs on two threads (inside encoder blocks of 4,096
@@ -43,19 +45,30 @@ def use_row_blocks(module: nn.Module, x: Tensor, row_block: int | None) -> bool:
     return row_block is not None and rows > row_block and not tracks_grad(module, x)
 
 
-def blocked_mlp(layers: nn.ModuleList, x: Tensor, row_block: int) -> Tensor:
+def blocked_mlp(layers: nn.ModuleList, x: Tensor, row_block: int, onednn: bool = False) -> Tensor:
     """Linear layers with ReLU between them on (R, in_dim) rows, ``row_block`` at a time.
 
     Args:
         layers: the `torch.nn.Linear` layers of the MLP.
         x: (R, in_dim) rows.
         row_block: rows per block.
+        onednn: run the products as oneDNN inner products (`taptr.model.ops.dense`), the
+            ReLUs fused into them, where that applies; else BLAS products written into
+            reused buffers.
 
     Returns:
         (R, out_dim).
     """
     linears = [layer for layer in layers if isinstance(layer, nn.Linear)]
     out = x.new_empty(x.shape[0], linears[-1].out_features)
+    if onednn:
+        last = len(linears) - 1
+        for start in range(0, x.shape[0], row_block):
+            h = x[start : start + row_block]
+            for i, layer in enumerate(linears):
+                h = linear(h, layer.weight, layer.bias, onednn=True, relu=i < last)
+            out[start : start + h.shape[0]] = h
+        return out
     # one hidden buffer per inner layer, reused by every block
     hidden = [x.new_empty(row_block, layer.out_features) for layer in linears[:-1]]
     for start in range(0, x.shape[0], row_block):

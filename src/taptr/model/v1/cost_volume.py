@@ -14,8 +14,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from taptr.model.execution import Execution
 from taptr.model.layers import MLP
 from taptr.model.ops import level_start_index
+from taptr.model.ops.dense import linear
 
 
 class CostVolume(nn.Module):
@@ -37,7 +39,7 @@ class CostVolume(nn.Module):
         memory: Tensor,
         spatial_shapes: list[tuple[int, int]],
         content: Tensor,
-        row_block: int | None = None,
+        execution: Execution | None = None,
     ) -> list[Tensor]:
         """Correlation maps of every point with every level of its own frame.
 
@@ -45,13 +47,14 @@ class CostVolume(nn.Module):
             memory: (B·W_t, S, C) encoder memory (no positional encoding).
             spatial_shapes: (H_l, W_l) per level.
             content: (B·W_t, N, C) window-entry content of each point on each frame.
-            row_block: the execution's MLP row block (`taptr.model.layers.MLP`).
+            execution: how the query MLP runs (`taptr.model.layers.MLP`).
 
         Returns:
             L maps (B·W_t, N, H_l, W_l).
         """
         frames, points, channels = content.shape
-        queries = self.query_proj(content, row_block)  # (B·W_t, N, C)
+        queries = self.query_proj(content, execution)  # (B·W_t, N, C)
+        onednn = execution is not None and execution.onednn_linear
         maps = []
         for mapper, start, (height, width) in zip(
             self.fmap_mappers, level_start_index(spatial_shapes), spatial_shapes, strict=True
@@ -59,7 +62,8 @@ class CostVolume(nn.Module):
             assert isinstance(mapper, nn.Conv2d)
             tokens = memory[:, start : start + height * width]  # (B·W_t, H·W, C)
             weight = mapper.weight.view(channels, channels)
-            mapped = F.linear(tokens, weight, mapper.bias)  # a 1×1 convolution on the tokens
+            # a 1×1 convolution on the tokens
+            mapped = linear(tokens, weight, mapper.bias, onednn=onednn)
             correlation = torch.bmm(queries, mapped.transpose(1, 2)) / channels**0.5
             maps.append(correlation.view(frames, points, height, width))
         return maps

@@ -119,11 +119,11 @@ class V1DecoderLayer(DecoderLayer):
         x = content
         if self.corr_fuser is not None and correlation is not None:
             fused = torch.cat((x, correlation), dim=-1)
-            x = self.corr_fuser(fused, execution.row_block)  # replaces the content
-        x = self._temporal(x, query_pos, masks.temporal)
+            x = self.corr_fuser(fused, execution)  # replaces the content
+        x = self._temporal(x, query_pos, masks.temporal, execution)
         x = self._points(x, query_pos, masks, execution)
         x, _ = self._cross(x, query_pos, reference, memory, spatial_shapes, execution)
-        x = self.norm_ffn(x + self.ffn(x, execution.row_block))
+        x = self.norm_ffn(x + self.ffn(x, execution))
         return LayerOutput(x, reference, None)
 
 
@@ -181,7 +181,7 @@ class V1Decoder(Decoder):
             return []
         batch, frames, points, channels = content.shape
         flat_content = content.reshape(batch * frames, points, channels)
-        return self.cost_volume.prepare(memory, spatial_shapes, flat_content, execution.row_block)
+        return self.cost_volume.prepare(memory, spatial_shapes, flat_content, execution)
 
     def layer_input(self, index: int, out: Tensor, content: Tensor, execution: Execution) -> Tensor:
         """v1 applies the content updater from the first layer on (the index is unused)."""

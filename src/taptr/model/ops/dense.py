@@ -1,0 +1,94 @@
+"""Linear layers as oneDNN inner products on x86 CPUs, at inference.
+
+PyTorch runs a float32 ``F.linear`` on CPU through its BLAS (MKL in the official wheels).
+On the AMD EPYC (AVX-512) host this was measured on, MKL's sgemm held 140-200 GFLOP/s on
+two threads where oneDNN, the library behind PyTorch's CPU convolutions, held 340-430 on
+the same products (the 256 → 2048 and 2048 → 256 FFN products, the 256 × 256 projections;
+docs/BENCHMARKS.md, ``benchmarks/gemm_floor.py``), the factor of two between AVX2 and
+AVX-512 kernels (oneDNN reports AVX-512 there; MKL's choice is not reported).
+``MKL_ENABLE_INSTRUCTIONS=AVX512`` did not change MKL's rate. On Intel CPUs both libraries
+are expected to run AVX-512 at about the same rate (not measured here). The same sums in
+another order: results agree with ``F.linear`` up to float rounding.
+
+oneDNN's inner product is reached through ``torch.ops.mkldnn._linear_pointwise``, the op
+``torch.compile``'s CPU backend emits for linear layers. It has no backward, so it is used
+only where autograd records nothing, and only where it exists: x86 CPUs (AVX2 or AVX-512;
+elsewhere, as on Apple silicon, the BLAS is the vendor's own), float32, outside autocast
+and outside graph capture (``torch.compile``, ``torch.export``, ``torch.jit.trace``).
+Everywhere else `linear` is ``F.linear``.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+from torch.utils.flop_counter import register_flop_formula
+
+X86_CAPABILITIES = ("AVX2", "AVX512")
+"""``torch.backends.cpu.get_cpu_capability()`` values of the CPUs the oneDNN path serves."""
+
+
+def _inner_product_flops(x_shape: torch.Size, w_shape: torch.Size, *args, **kwargs) -> int:
+    """2 per multiply-accumulate, as ``torch.utils.flop_counter`` counts ``F.linear``."""
+    out_features, in_features = w_shape
+    return 2 * math.prod(x_shape[:-1]) * in_features * out_features
+
+
+if hasattr(torch.ops.mkldnn, "_linear_pointwise"):
+    # without a formula, FlopCounterMode counts these products as zero
+    register_flop_formula(torch.ops.mkldnn._linear_pointwise)(_inner_product_flops)
+
+
+@functools.cache
+def onednn_available() -> bool:
+    """Whether this PyTorch build and CPU have oneDNN's inner product (fixed per process)."""
+    if not torch.backends.mkldnn.is_available():
+        return False
+    if torch.backends.cpu.get_cpu_capability() not in X86_CAPABILITIES:
+        return False
+    return hasattr(torch.ops.mkldnn, "_linear_pointwise")
+
+
+def onednn_applies(x: Tensor, weight: Tensor) -> bool:
+    """Whether `linear` would run ``x`` (..., in) through oneDNN."""
+    if x.device.type != "cpu" or x.dtype != torch.float32 or weight.dtype != torch.float32:
+        return False
+    if torch.is_grad_enabled() and (x.requires_grad or weight.requires_grad):
+        return False
+    if torch.is_autocast_enabled("cpu") or _tracing():
+        return False
+    return onednn_available()
+
+
+def _tracing() -> bool:
+    """Whether a graph is being captured (compile, export, jit trace): graphs keep ``F.linear``."""
+    exporting = getattr(torch.compiler, "is_exporting", lambda: False)
+    return torch.compiler.is_compiling() or exporting() or torch.jit.is_tracing()
+
+
+def linear(
+    x: Tensor, weight: Tensor, bias: Tensor | None, *, onednn: bool, relu: bool = False
+) -> Tensor:
+    """``F.linear(x, weight, bias)``, then ReLU if asked; through oneDNN where it applies.
+
+    Args:
+        x: (..., in) rows.
+        weight: (out, in).
+        bias: (out,) or None.
+        onednn: the execution's choice (`taptr.model.execution.Execution.onednn_linear`);
+            False always runs ``F.linear``.
+        relu: apply ReLU to the result (fused into the product on the oneDNN path).
+
+    Returns:
+        (..., out).
+    """
+    if onednn and onednn_applies(x, weight):
+        return torch.ops.mkldnn._linear_pointwise(
+            x, weight, bias, "relu" if relu else "none", [], ""
+        )
+    out = F.linear(x, weight, bias)
+    return F.relu(out) if relu else out
