@@ -113,36 +113,27 @@ def cases(
             off = dataclasses.replace(fast, **{part: False})
             results[part] = paired(model, off, fast, lambda: model.feature_maps(image)[0], repeats)
         maps = model.input_projections(model.backbone(image))
-        off = dataclasses.replace(fast, encoder_block=None)
-        results["encoder_block"] = paired(
-            model, off, fast, lambda: model.encoder(maps, model.execution), repeats
-        )
-        off = dataclasses.replace(fast, onednn_linear=False)
-        results["onednn_linear (encoder)"] = paired(
-            model, off, fast, lambda: model.encoder(maps, model.execution), repeats
-        )
+        encoder_cases = {"encoder_block": {"encoder_block": None}}
+        encoder_cases["onednn_linear (encoder)"] = {"onednn_linear": False}
+        for name, changes in encoder_cases.items():
+            off = dataclasses.replace(fast, **changes)
+            results[name] = paired(
+                model, off, fast, lambda: model.encoder(maps, model.execution), repeats
+            )
         # tables are shared across windows, so this part is timed on the whole tracker
-        results["shared_tables"] = paired(
-            model,
-            dataclasses.replace(fast, shared_tables=False),
-            fast,
-            _tracker(model, generator, frames, size, points),
-            max(1, repeats // 3),
-        )
-        results["onednn_linear"] = paired(
-            model,
-            dataclasses.replace(fast, onednn_linear=False),
-            fast,
-            _tracker(model, generator, frames, size, points),
-            max(1, repeats // 3),
-        )
-        results["all"] = paired(
-            model,
-            dataclasses.replace(fast, **PARTS_OFF),
-            fast,
-            _tracker(model, generator, frames, size, points),
-            max(1, repeats // 3),
-        )
+        tracker_cases = {
+            "shared_tables": {"shared_tables": False},
+            "onednn_linear": {"onednn_linear": False},
+            "all": PARTS_OFF,
+        }
+        for name, changes in tracker_cases.items():
+            results[name] = paired(
+                model,
+                dataclasses.replace(fast, **changes),
+                fast,
+                _tracker(model, generator, frames, size, points),
+                max(1, repeats // 3),
+            )
     return results
 
 
