@@ -149,3 +149,20 @@ def test_flop_counter_counts_onednn_products_as_f_linear(generator):
             linear(x, weight, bias, onednn=onednn, relu=True)
         counts.append(counter.get_total_flops())
     assert counts == [2 * 30 * 8 * 6] * 2
+
+
+def test_row_blocks_keep_their_reused_buffers_where_onednn_does_not_apply(monkeypatch):
+    import taptr.model.ops.row_blocks as row_blocks
+    from taptr.model.layers import MLP
+    from taptr.model.ops import blocked_mlp
+
+    def fail(*args, **kwargs):
+        raise AssertionError("per-block fresh products where oneDNN does not apply")
+
+    monkeypatch.setattr(row_blocks, "apply_linear", fail)
+    torch.manual_seed(0)
+    mlp = MLP(8, 16, 4, num_layers=2).double()
+    x = torch.randn(50, 8, dtype=torch.float64)  # float64: oneDNN's path does not apply
+    with torch.no_grad():
+        blocked = blocked_mlp(mlp.layers, x, 16, onednn=True)
+        torch.testing.assert_close(blocked, mlp(x), rtol=1e-12, atol=1e-12)

@@ -296,7 +296,7 @@ def peak_flops(threads: int, size: int = 2048, repeats: int = 5) -> float:
 
     The best of ``repeats`` ``size``³ products through each path the model's products can
     take: the BLAS (``torch.mm``) and, where it applies, oneDNN's inner product
-    (`taptr.model.ops.dense`), which runs twice as fast as MKL on AMD CPUs.
+    (`taptr.model.ops.dense`), which ran twice as fast as MKL on the AMD host measured.
     """
     torch.set_num_threads(threads)
     a, b = torch.randn(size, size), torch.randn(size, size)

@@ -16,7 +16,7 @@ from torch import Tensor, nn
 from taptr.model.execution import Execution
 from taptr.model.frame_tables import LayerTables
 from taptr.model.ops import deform_attn, key_aware_attn, value_table
-from taptr.model.ops.dense import linear
+from taptr.model.ops.dense import apply_linear, linear
 from taptr.model.ops.gather import interleaved_sizes
 
 
@@ -46,7 +46,7 @@ def _offset_grid_bias(num_heads: int, num_levels: int, num_points: int) -> Tenso
 
 def project(layer: nn.Linear, x: Tensor, execution: Execution) -> Tensor:
     """``layer(x)``, as a oneDNN inner product where the execution asks for it."""
-    return linear(x, layer.weight, layer.bias, onednn=execution.onednn_linear)
+    return apply_linear(layer, x, onednn=execution.onednn_linear)
 
 
 def sampling_locations(
@@ -296,4 +296,4 @@ class MultiheadAttention(nn.Module):
             attn_mask=allowed,
         )  # (B, M, L, D)
         merged = attended.transpose(1, 2).reshape(batch, length, channels)  # (B, L, C)
-        return linear(merged, self.out_proj.weight, self.out_proj.bias, onednn=onednn)
+        return apply_linear(self.out_proj, merged, onednn=onednn)

@@ -21,7 +21,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
-from taptr.model.ops.dense import linear, onednn_applies
+from taptr.model.ops.dense import apply_linear, onednn_applies
 
 KeyValue = tuple[Tensor, Tensor]
 """One image's key and value tables, each (S, C): the memory's rows through one layer's
@@ -117,7 +117,7 @@ class FrameTables:
             for projection, table in zip((key_proj, value_proj), pair, strict=True):
                 if onednn and onednn_applies(memory, projection.weight):
                     # oneDNN writes a fresh tensor: copied into the reused pair (see __init__)
-                    table.copy_(linear(memory, projection.weight, projection.bias, onednn=True))
+                    table.copy_(apply_linear(projection, memory, onednn=True))
                 else:
                     torch.addmm(projection.bias, memory, projection.weight.t(), out=table)
         return pair

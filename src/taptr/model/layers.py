@@ -7,7 +7,7 @@ import itertools
 from torch import Tensor, nn
 
 from taptr.model.execution import Execution
-from taptr.model.ops.dense import linear
+from taptr.model.ops.dense import apply_linear
 from taptr.model.ops.row_blocks import blocked_mlp, use_row_blocks
 
 
@@ -42,5 +42,5 @@ class MLP(nn.Module):
             return blocked_mlp(self.layers, rows, row_block, onednn).view(*x.shape[:-1], -1)
         last = len(self.layers) - 1
         for i, layer in enumerate(self.layers):
-            x = linear(x, layer.weight, layer.bias, onednn=onednn, relu=i < last)
+            x = apply_linear(layer, x, onednn=onednn, relu=i < last)
         return x

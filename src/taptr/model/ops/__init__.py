@@ -21,7 +21,7 @@ from collections.abc import Iterable
 import torch
 from torch import Tensor, nn
 
-from taptr.model.ops.dense import linear
+from taptr.model.ops.dense import apply_linear
 from taptr.model.ops.gather import (
     gather_deform_attn,
     gather_key_aware_attn,
@@ -65,7 +65,7 @@ def value_table(
     """
     if kernel == "gather":
         return projected_table(memory, value_proj, spatial_shapes, heads, onednn=onednn)
-    values = linear(memory, value_proj.weight, value_proj.bias, onednn=onednn)
+    values = apply_linear(value_proj, memory, onednn=onednn)
     return values.view(*memory.shape[:2], heads, -1)
 
 
@@ -149,8 +149,8 @@ def key_aware_attn(
     shape = (*memory.shape[:2], heads, -1)  # (B, S, M, D)
     return key_aware_ms_deform_attn(
         queries,
-        linear(memory, key_proj.weight, key_proj.bias, onednn=onednn).view(shape),
-        linear(memory, value_proj.weight, value_proj.bias, onednn=onednn).view(shape),
+        apply_linear(key_proj, memory, onednn=onednn).view(shape),
+        apply_linear(value_proj, memory, onednn=onednn).view(shape),
         spatial_shapes,
         locations,
     )

@@ -25,7 +25,7 @@ import math
 
 import torch
 import torch.nn.functional as F
-from torch import Tensor
+from torch import Tensor, nn
 from torch.utils.flop_counter import register_flop_formula
 
 X86_CAPABILITIES = ("AVX2", "AVX512")
@@ -92,3 +92,8 @@ def linear(
         )
     out = F.linear(x, weight, bias)
     return F.relu(out) if relu else out
+
+
+def apply_linear(layer: nn.Linear, x: Tensor, *, onednn: bool, relu: bool = False) -> Tensor:
+    """``layer(x)`` (then ReLU if asked) by `linear`: through oneDNN where it applies."""
+    return linear(x, layer.weight, layer.bias, onednn=onednn, relu=relu)

@@ -24,7 +24,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from taptr.model.ops.dense import linear
+from taptr.model.ops.dense import apply_linear, linear
 
 CHUNK_ELEMENTS = 1 << 22
 """Largest intermediate of sampled keys, in elements (16 MB in float32: below glibc's
@@ -90,7 +90,7 @@ def projected_table(
         if differentiable:
             return projection(memory).reshape(-1, channels // heads)
         if onednn:
-            rows = linear(memory, projection.weight, projection.bias, onednn=True)
+            rows = apply_linear(projection, memory, onednn=True)
             return rows.reshape(-1, channels // heads)
         flat = memory.reshape(-1, channels)  # (B·S, C)
         rows = torch.addmm(projection.bias, flat, projection.weight.t())

@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from taptr.model.ops.dense import linear
+from taptr.model.ops.dense import apply_linear, onednn_applies
 
 ROW_BLOCK = 2048
 """Rows per block in the ``fast`` execution. Unblocked, the encoder FFN is 1.5x slower on
@@ -53,20 +53,20 @@ def blocked_mlp(layers: nn.ModuleList, x: Tensor, row_block: int, onednn: bool =
         x: (R, in_dim) rows.
         row_block: rows per block.
         onednn: run the products as oneDNN inner products (`taptr.model.ops.dense`), the
-            ReLUs fused into them, where that applies; else BLAS products written into
-            reused buffers.
+            ReLUs fused into them, where that applies; elsewhere (GPUs, float64) and
+            without it, BLAS products written into reused buffers.
 
     Returns:
         (R, out_dim).
     """
     linears = [layer for layer in layers if isinstance(layer, nn.Linear)]
     out = x.new_empty(x.shape[0], linears[-1].out_features)
-    if onednn:
+    if onednn and onednn_applies(x, linears[0].weight):
         last = len(linears) - 1
         for start in range(0, x.shape[0], row_block):
             h = x[start : start + row_block]
             for i, layer in enumerate(linears):
-                h = linear(h, layer.weight, layer.bias, onednn=True, relu=i < last)
+                h = apply_linear(layer, h, onednn=True, relu=i < last)
             out[start : start + h.shape[0]] = h
         return out
     # one hidden buffer per inner layer, reused by every block
