@@ -27,7 +27,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from taptr.config import ModelConfig, taptrv1, taptrv2
+from taptr.config import ModelConfig
 from taptr.io import limits
 from taptr.io.atomic import atomic_path
 from taptr.io.checkpoint_scan import ScanError, scan_checkpoint
@@ -37,7 +37,7 @@ from taptr.official.convert import (
     ConversionError,
     convert_state_dict,
     looks_official,
-    official_version,
+    official_config,
     official_weights,
 )
 
@@ -245,7 +245,7 @@ def checkpoint_contents(
             weights, _ = convert_state_dict(official_weights(checkpoint))
         except ConversionError as error:
             raise CheckpointError(f"{source}: {error}") from None
-        config = taptrv1() if official_version(weights) == 1 else taptrv2()
+        config = official_config(weights)
     else:
         raise CheckpointError(
             f"{source} is neither a taptr checkpoint (no 'format': 'taptr' entry) nor an "

@@ -138,8 +138,9 @@ def _inputs(config: BenchConfig) -> tuple[torch.Tensor, Any]:
 
 
 def _track(model: TAPTR, config: BenchConfig, video: torch.Tensor, queries: Any) -> Any:
+    from taptr.model.drivers import run_tracker
     from taptr.model.frames import EncodedFrames, PrecomputedFrames
-    from taptr.model.sliding_window import QuerySet, run_windows
+    from taptr.model.sliding_window import QuerySet
     from taptr.model.taptr import normalize_frames
 
     device = torch.device(config.device)
@@ -155,7 +156,7 @@ def _track(model: TAPTR, config: BenchConfig, video: torch.Tensor, queries: Any)
         frames = PrecomputedFrames(model.encode(load(0, config.frames - 1), chunk_size=24))
     else:
         frames = EncodedFrames(model, load)
-    return run_windows(model, queries, config.frames, frames, torch.float32)
+    return run_tracker(model, queries, config.frames, frames, torch.float32)
 
 
 def run_case(config: BenchConfig, positions_out: str | None = None) -> BenchResult:
