@@ -65,12 +65,19 @@ def read_file(path: str | os.PathLike[str]) -> Any:
     Raises:
         FileNotFoundError: the path does not exist.
         UnsafeCheckpointError: the file pickles other Python objects (they are named).
-        CheckpointError: the file is not a readable PyTorch checkpoint, declares more data
-            than it holds, or exceeds the size limit; the message names the file.
+        CheckpointError: the file is a web page (a download that saved the link's page),
+            not a readable PyTorch checkpoint, declares more data than it holds, or exceeds
+            the size limit; the message names the file.
     """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint not found: {path}")
+    if _is_web_page(path):
+        raise CheckpointError(
+            f"{path} is a web page (HTML), not a checkpoint: a download link saved its page "
+            "instead of the file (Google Drive answers curl and wget with a confirmation page "
+            "for large files); download the file in a browser"
+        )
     try:
         scan = scan_checkpoint(path)
     except limits.LimitError as error:
@@ -92,6 +99,13 @@ def read_file(path: str | os.PathLike[str]) -> Any:
         raise CheckpointError(
             f"cannot read {path}: not a PyTorch checkpoint or corrupt ({_short_reason(error)})"
         ) from None
+
+
+def _is_web_page(path: Path) -> bool:
+    """Whether the file starts like an HTML document (after blanks and a byte-order mark)."""
+    with path.open("rb") as stream:
+        head = stream.read(512).lstrip(b"\xef\xbb\xbf \t\r\n").lower()
+    return head.startswith((b"<!doctype html", b"<html"))
 
 
 def _unsafe(names: list[str]) -> list[str]:

@@ -36,6 +36,7 @@ from taptr.api.inputs import query_tensor, video_tensor
 from taptr.api.predictor import Predictor
 from taptr.api.queries import model_queries, on_own_frames
 from taptr.api.stream_frames import StreamFrames
+from taptr.api.support import LOCAL_OFFSETS, local_points
 from taptr.geometry import normalized_to_pixels
 from taptr.model.sliding_window import QuerySet, TrackerState
 
@@ -62,6 +63,10 @@ class StreamState:
         next_id: identifier of the next point added.
         is_context: (N_t,) bool over the tracker's points: True for context points.
         context_added: whether the context points have been drawn.
+        support: the support scheme chosen then (`Predictor.support_scheme`); with
+            ``"local_and_grid"``, points added later bring their own local points.
+        support_of: (N_t,) int64 over the tracker's points: the identifier of the user
+            point a local support point surrounds (it leaves with it), else −1.
     """
 
     tracker: TrackerState | FrameStream
@@ -76,6 +81,8 @@ class StreamState:
     next_id: int = 0
     is_context: Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.bool))
     context_added: bool = False
+    support: str | None = None
+    support_of: Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.long))
 
 
 @dataclass
@@ -141,6 +148,10 @@ class OnlineTracker:
         state.point_ids += ids
         state.queries = torch.cat((state.queries, new))
         state.is_context = torch.cat((state.is_context, torch.zeros(len(ids), dtype=torch.bool)))
+        state.support_of = torch.cat((state.support_of, torch.full((len(ids),), -1)))
+        if state.support == "local_and_grid":  # the support of points added later
+            parents = torch.tensor(ids).repeat_interleave(len(LOCAL_OFFSETS))
+            self._add_support_points(state, local_points(points), parents)
         return ids
 
     def remove_queries(self, state: StreamState, ids: list[int]) -> None:
@@ -149,10 +160,12 @@ class OnlineTracker:
         if unknown:
             raise ValueError(f"unknown point ids: {unknown}")
         keep = torch.tensor([pid not in set(ids) for pid in state.point_ids], dtype=torch.bool)
-        keep_tracked = state.is_context.clone()
-        keep_tracked[~state.is_context] = keep  # context points stay
+        # context and grid points stay; local support points leave with their point
+        keep_tracked = state.is_context & ~torch.isin(state.support_of, torch.tensor(ids))
+        keep_tracked[~state.is_context] = keep
         self.engine.keep_points(state.tracker, keep_tracked.to(self.predictor.device))
         state.is_context = state.is_context[keep_tracked]
+        state.support_of = state.support_of[keep_tracked]
         state.queries = state.queries[keep]
         state.point_ids = [pid for pid in state.point_ids if pid not in set(ids)]
 
@@ -205,11 +218,27 @@ class OnlineTracker:
         """Draws the context points from the points known now (before the first window)."""
         state.context_added = True
         known = self.engine.queries(state.tracker)
-        padded = self.predictor.with_support(known, state.num_frames)
+        state.support = self.predictor.support_scheme(known.start_frames.shape[1])
+        padded = self.predictor.with_support(known, state.num_frames, state.support)
         count = padded.start_frames.shape[1] - known.start_frames.shape[1]
-        if count:
-            self.engine.add_points(state.tracker, QuerySet(*(q[:, -count:] for q in padded)))
-            state.is_context = torch.cat((state.is_context, torch.ones(count, dtype=torch.bool)))
+        if not count:
+            return
+        parents = torch.full((count,), -1)
+        if state.support == "local_and_grid":  # 63 local points per known point, in order
+            known_ids = torch.tensor(state.point_ids, dtype=torch.long)
+            local = known_ids.repeat_interleave(len(LOCAL_OFFSETS))
+            parents[: len(local)] = local
+        self._add_support_points(state, QuerySet(*(q[:, -count:] for q in padded)), parents)
+
+    def _add_support_points(self, state: StreamState, points: QuerySet, parents: Tensor) -> None:
+        """Adds context or support points, never returned.
+
+        ``parents``: (K,) the user point each surrounds, or −1.
+        """
+        self.engine.add_points(state.tracker, points)
+        count = points.start_frames.shape[1]
+        state.is_context = torch.cat((state.is_context, torch.ones(count, dtype=torch.bool)))
+        state.support_of = torch.cat((state.support_of, parents))
 
     def _decode(self, state: StreamState, first: int, last: int) -> None:
         if not state.context_added:

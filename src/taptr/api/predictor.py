@@ -259,14 +259,17 @@ class Predictor:
             return "grid"
         return scheme
 
-    def with_support(self, queries: QuerySet, num_frames: int | None) -> QuerySet:
+    def with_support(
+        self, queries: QuerySet, num_frames: int | None, scheme: str | None = None
+    ) -> QuerySet:
         """The model's point set: the user's points, then their context or support points.
 
         Args:
             queries: the user's points (B, N, ·) in model units.
             num_frames: the video's length, or None for a stream.
+            scheme: the support to add; default `support_scheme` of the N points.
         """
-        scheme = self.support_scheme(queries.start_frames.shape[1])
+        scheme = scheme or self.support_scheme(queries.start_frames.shape[1])
         if scheme == "none":
             return queries
         if scheme == "random":

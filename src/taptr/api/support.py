@@ -46,6 +46,10 @@ def local_offsets() -> np.ndarray:
     return np.delete(grid, LOCAL_SIDE * LOCAL_SIDE // 2, axis=0)
 
 
+LOCAL_OFFSETS = local_offsets()
+"""(63, 2) the local pattern, in 256 × 256 pixels."""
+
+
 def grid_positions() -> np.ndarray:
     """(36, 2) grid (x, y) in 256 × 256 pixels, x fastest."""
     line = np.linspace(GRID_MARGIN, 256 - 1 - GRID_MARGIN, GRID_SIDE)
@@ -81,17 +85,27 @@ def with_support(queries: QuerySet, scheme: str, grid_starts: np.ndarray | None 
         grid_starts = grid_start_frames(np.random.RandomState(GRID_SEED))
     device, dtype = queries.positions.device, queries.positions.dtype
     batch = queries.start_frames.shape[0]
-    positions, starts = [], []
-    if scheme == "local_and_grid":
-        offsets = torch.from_numpy(local_offsets() / EVAL_SCALE).to(device, dtype)  # (63, 2)
-        positions.append((queries.positions[:, :, None] + offsets).flatten(1, 2))
-        starts.append(queries.start_frames.repeat_interleave(len(offsets), dim=1))
     grid = torch.from_numpy(grid_positions() / EVAL_SCALE).to(device, dtype)
-    positions.append(grid.expand(batch, -1, -1))
-    starts.append(torch.from_numpy(grid_starts).to(device).expand(batch, -1))
-    added = torch.cat(positions, dim=1)
+    parts = [queries]
+    if scheme == "local_and_grid":
+        parts.append(local_points(queries))
+    parts.append(
+        QuerySet(
+            torch.from_numpy(grid_starts).to(device).expand(batch, -1),
+            grid.expand(batch, -1, -1),
+            torch.ones(batch, len(grid), dtype=torch.bool, device=device),
+        )
+    )
+    return QuerySet(*(torch.cat(column, dim=1) for column in zip(*parts, strict=True)))
+
+
+def local_points(queries: QuerySet) -> QuerySet:
+    """The 63 local points of each query, (B, 63·N, ·), in query order; static, visible."""
+    offsets = torch.from_numpy(LOCAL_OFFSETS / EVAL_SCALE)
+    offsets = offsets.to(queries.positions.device, queries.positions.dtype)  # (63, 2)
+    positions = (queries.positions[:, :, None] + offsets).flatten(1, 2)
     return QuerySet(
-        torch.cat((queries.start_frames, *starts), dim=1),
-        torch.cat((queries.positions, added), dim=1),
-        torch.cat((queries.start_visible, queries.start_visible.new_ones(added.shape[:2])), 1),
+        queries.start_frames.repeat_interleave(len(offsets), dim=1),
+        positions,
+        torch.ones(positions.shape[:2], dtype=torch.bool, device=positions.device),
     )
