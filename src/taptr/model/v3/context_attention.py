@@ -32,7 +32,7 @@ from taptr.model.attention import (
 from taptr.model.execution import Execution
 from taptr.model.layers import MLP
 from taptr.model.ops import deform_attn, value_table
-from taptr.model.ops.context_patches import patch_locations, sample_key_patches
+from taptr.model.ops.context_patches import key_table, query_chunks, sample_key_patches
 
 
 class ContextAwareDeformableAttention(KeyAwareDeformableAttention):
@@ -100,20 +100,30 @@ class ContextAwareDeformableAttention(KeyAwareDeformableAttention):
         execution: Execution,
         context: Tensor,
     ) -> Tensor:
-        """Steps 1-4: (B, Q, M, L·P) logits of the locations (B, Q, M, L, P, 2)."""
-        batch, queries, heads = locations.shape[:3]
+        """Steps 1-4: (B, Q, M, L·P) logits of the locations (B, Q, M, L, P, 2).
+
+        Queries are taken in chunks, so that their K² samples per location (nine times
+        the value samples) are never all held at once.
+        """
+        batch, queries, heads, levels, points = locations.shape[:5]
         k2 = self.patch**2
-        patches = patch_locations(locations, spatial_shapes, self.patch)
-        keys = sample_key_patches(
+        keys = key_table(
             execution.kernel,
             memory,
             self.key_proj,
             spatial_shapes,
-            patches,
             heads,
             onednn=execution.onednn_linear,
-        ).view(batch, queries, heads, -1, k2, memory.shape[-1] // heads)  # (B, Q, M, L·P, K², D)
+        )
         own = project(self.query_proj, context.flatten(2, 3), execution)  # (B, Q, K², C)
         own = own.view(batch, queries, k2, heads, -1).transpose(2, 3)  # (B, Q, M, K², D)
-        products = torch.einsum("bqmjxd,bqmyd->bqmjxy", keys, own).flatten(-2)  # (..., K⁴)
-        return self.similarity(products, execution).squeeze(-1)  # (B, Q, M, L·P)
+        per_query = batch * heads * levels * points * k2 * own.shape[-1]
+        logits = []
+        for part in query_chunks(queries, per_query):
+            sampled = sample_key_patches(
+                execution.kernel, keys, spatial_shapes, locations[:, part], self.patch
+            )
+            sampled = sampled.unflatten(3, (levels * points, k2))  # (B, q, M, L·P, K², D)
+            products = torch.einsum("bqmjxd,bqmyd->bqmjxy", sampled, own[:, part])
+            logits.append(self.similarity(products.flatten(-2), execution).squeeze(-1))
+        return torch.cat(logits, dim=1)  # (B, Q, M, L·P)
