@@ -14,6 +14,7 @@ engines hold no state of their own: everything lives in the stream's driver stat
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any, Protocol
 
 import torch
 from torch import Tensor
@@ -34,6 +35,50 @@ from taptr.windows import window_ranges
 
 Span = tuple[int, int]
 """First and last frame (inclusive) of a unit of decoding."""
+
+
+class StreamEngine(Protocol):
+    """What the online tracker asks of an engine; ``state`` is the engine's own state."""
+
+    def start(self, queries: QuerySet, num_frames: int | None, dtype: torch.dtype) -> Any:
+        """The driver state of a new stream."""
+        ...
+
+    def queries(self, state: Any) -> QuerySet:
+        """The points the state tracks."""
+        ...
+
+    def add_points(self, state: Any, queries: QuerySet) -> None:
+        """Appends points."""
+        ...
+
+    def keep_points(self, state: Any, keep: Tensor) -> None:
+        """Keeps the points selected by the (N,) bool mask."""
+        ...
+
+    def next_span(self, state: Any, num_frames: int | None) -> Span | None:
+        """The next unit to decode, or None when a declared stream has no more."""
+        ...
+
+    def remaining(self, state: Any, num_seen: int) -> list[Span]:
+        """The units still to decode when the stream ends after ``num_seen`` frames."""
+        ...
+
+    def decode(self, state: Any, span: Span, frames: FrameSource) -> None:
+        """Decodes one unit."""
+        ...
+
+    def final_bound(self, state: Any, num_seen: int, num_frames: int | None) -> int:
+        """Frames before this index can no longer change."""
+        ...
+
+    def read(self, state: Any, first: int, bound: int) -> tuple[Tensor, Tensor]:
+        """Last-layer positions (F, N, 2) normalised and logits (F, N) of frames first..bound−1."""
+        ...
+
+    def release(self, state: Any, before: int) -> None:
+        """Forgets what frames before ``before`` needed."""
+        ...
 
 
 class WindowEngine:
@@ -191,10 +236,7 @@ class FrameEngine:
             del state.decoded[frame]
 
 
-Engine = WindowEngine | FrameEngine
-
-
-def engine_for(model: TAPTR, history_frames: int | None = None) -> Engine:
+def engine_for(model: TAPTR, history_frames: int | None = None) -> StreamEngine:
     """The engine of ``model``'s family (``history_frames``: TAPTRv3's history limit)."""
     if isinstance(model, TAPTRv3):
         return FrameEngine(model, history_frames)

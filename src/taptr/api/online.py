@@ -31,7 +31,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from taptr.api.engines import Engine, FrameStream, engine_for
+from taptr.api.engines import FrameStream, StreamEngine, engine_for
 from taptr.api.inputs import query_tensor, video_tensor
 from taptr.api.predictor import Predictor
 from taptr.api.queries import model_queries, on_own_frames
@@ -110,7 +110,7 @@ class OnlineTracker:
     def __init__(self, predictor: Predictor) -> None:
         self.predictor = predictor
         self.model = predictor.model
-        self.engine: Engine = engine_for(predictor.model, predictor.history_frames)
+        self.engine: StreamEngine = engine_for(predictor.model, predictor.history_frames)
 
     def start(
         self, num_frames: int | None = None, frame_size: tuple[int, int] | None = None

@@ -108,11 +108,12 @@ def run(args: argparse.Namespace) -> int:
     ]
     for preset, points, history in cases_to_run:
         model = get_config(preset)
+        height, width = args.size or model.input_size
         config = BenchConfig(
             preset=preset,
             frames=args.frames,
             points=points,
-            size=tuple(args.size) if args.size else tuple(model.input_size),
+            size=(height, width),
             threads=args.threads,
             device=args.device,
             dtype=args.dtype,

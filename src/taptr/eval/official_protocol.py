@@ -132,7 +132,8 @@ class OfficialTAPTR:
     ) -> None:
         self.device = torch.device(device)
         self.model = model.to(self.device).eval()
-        self.input_size = tuple(model.config.input_size) if model.config else (512, 512)
+        height, width = model.config.input_size if model.config else (512, 512)
+        self.input_size = (height, width)
         self.num_queries = num_queries
         self.threshold = model.config.visibility_threshold if model.config else 0.5
         self.per_frame = isinstance(model, TAPTRv3)
