@@ -80,6 +80,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "K points (default: the model's, 800 for the paper's weights; 0: none)",
     )
     parser.add_argument(
+        "--support",
+        choices=("auto", "random", "local_and_grid", "grid", "none"),
+        default="auto",
+        help="standard protocol: the predictor's extra points around the queries (as "
+        "taptr track --support; default: auto, the model's own)",
+    )
+    parser.add_argument(
         "--points-per-call",
         type=int,
         default=None,
@@ -131,6 +138,7 @@ def run(args: argparse.Namespace) -> int:
         device=args.device,
         overlays=args.overlays,
         context_points=args.context_points,
+        support_points=None if args.support == "auto" else args.support,
         points_per_call=args.points_per_call,
         dtype=args.dtype,
     )

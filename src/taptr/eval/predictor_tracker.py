@@ -43,16 +43,21 @@ class PredictorTracker:
         backward: bool,
         device: str | torch.device | None = None,
         context_points: int | None = None,
+        support_points: str | None = None,
         points_per_call: int | None = None,
         autocast: torch.dtype | None = None,
     ) -> PredictorTracker:
         """A tracker for a checkpoint file or model name (None: the default model).
 
-        ``context_points`` and ``autocast`` as in `Predictor` (None: the model's own count;
-        no autocast).
+        ``context_points``, ``support_points`` and ``autocast`` as in `Predictor` (None:
+        the model's own count and scheme; no autocast).
         """
         predictor = Predictor.from_pretrained(
-            name_or_path, device=device, context_points=context_points, autocast=autocast
+            name_or_path,
+            device=device,
+            context_points=context_points,
+            support_points=support_points,
+            autocast=autocast,
         )
         return cls(predictor, backward=backward, points_per_call=points_per_call)
 

@@ -58,6 +58,8 @@ class EvalConfig:
         overlays: draw overlay videos of this many worst videos.
         context_points: the predictor's context points (standard protocol, taptr tracker);
             None = the model's own count, 0 = none.
+        support_points: the predictor's support scheme (standard protocol, taptr
+            tracker; `taptr.Predictor`); None = the model's own.
         points_per_call: track each video's queries in groups of this many, one call each
             (standard protocol, taptr tracker); None = all at once.
         dtype: ``float32``, or run the model under autocast in ``bfloat16`` / ``float16``
@@ -74,6 +76,7 @@ class EvalConfig:
     device: str | None = None
     overlays: int = 0
     context_points: int | None = None
+    support_points: str | None = None
     points_per_call: int | None = None
     dtype: str = "float32"
 
@@ -125,6 +128,7 @@ def build_protocol(config: EvalConfig, device: str) -> EvalProtocol:
         backward=config.mode == "strided",
         device=device,
         context_points=config.context_points,
+        support_points=config.support_points,
         points_per_call=config.points_per_call,
         autocast=autocast_type(config.dtype),
     )
