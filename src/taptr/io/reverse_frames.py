@@ -18,7 +18,15 @@ from pathlib import Path
 import av
 import numpy as np
 
-from taptr.io.video import _check_source, _image_files, _open_video, _read_images, _reason, rgb
+from taptr.io.video import (
+    _check_source,
+    _image_files,
+    _open_video,
+    _read_images,
+    _reason,
+    frame_size_check,
+    rgb,
+)
 
 SEGMENT_FRAMES = 32
 """Decoded frames held at a time: 32 frames of 1080p are 200 MB."""
@@ -57,12 +65,14 @@ def _reversed_video(source: Path, max_frames: int | None, segment: int) -> Itera
     if not stamps:
         raise ValueError(f"no frames in video {source}")
     seekable = None not in stamps and len(set(stamps)) == len(stamps)
+    same_size = frame_size_check(source)
     for end in range(len(stamps), 0, -segment):
         start = max(0, end - segment)
         frames = _segment_by_seeking(source, stamps[start:end]) if seekable else None
         if frames is None:  # no timestamps, or the seek landed elsewhere
             frames = _segment_from_start(source, start, end)
-        yield from reversed(frames)
+        for offset, frame in enumerate(reversed(frames)):
+            yield same_size(frame, end - 1 - offset)
 
 
 def _presentation_times(source: Path) -> list[int | None]:
