@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import functools
 import os
+import reprlib
 import warnings
 from collections.abc import Mapping
 from pathlib import Path
@@ -31,6 +32,8 @@ from taptr.config import ModelConfig, taptrv1, taptrv2
 from taptr.io import limits
 from taptr.io.atomic import atomic_path
 from taptr.io.checkpoint_scan import ScanError, scan_checkpoint
+from taptr.io.file_kind import kind, require_file, shown
+from taptr.io.nesting import NestingError, check_nesting, nesting_depth
 from taptr.model.build import build_model
 from taptr.model.taptr import TAPTR
 from taptr.official.convert import (
@@ -65,12 +68,20 @@ def read_file(path: str | os.PathLike[str]) -> Any:
     Raises:
         FileNotFoundError: the path does not exist.
         UnsafeCheckpointError: the file pickles other Python objects (they are named).
-        CheckpointError: the file is not a readable PyTorch checkpoint, declares more data
-            than it holds, or exceeds the size limit; the message names the file.
+        CheckpointError: the path is not a regular file (a folder, FIFO or device, refused
+            before opening), the file is not a readable PyTorch checkpoint, declares more
+            data than it holds, exceeds the size limit or nests its data too deeply; the
+            message names the file.
     """
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"checkpoint not found: {path}")
+    try:
+        if kind(path, "checkpoint") is None:
+            raise FileNotFoundError(f"checkpoint not found: {shown(path)}")
+        require_file(path, "checkpoint")
+    except FileNotFoundError:
+        raise
+    except ValueError as error:
+        raise CheckpointError(str(error)) from None
     try:
         scan = scan_checkpoint(path)
     except limits.LimitError as error:
@@ -87,11 +98,16 @@ def read_file(path: str | os.PathLike[str]) -> Any:
     try:
         with warnings.catch_warnings(), torch.serialization.safe_globals(SAFE_GLOBALS):
             warnings.simplefilter("ignore", UserWarning)
-            return torch.load(path, map_location="cpu", weights_only=True)
+            loaded = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:  # PyTorch raises many types; none may escape unnamed
         raise CheckpointError(
             f"cannot read {path}: not a PyTorch checkpoint or corrupt ({_short_reason(error)})"
         ) from None
+    try:  # every later step (messages, key names, the config) may walk it recursively
+        check_nesting(loaded, str(path))
+    except NestingError as error:
+        raise CheckpointError(str(error)) from None
+    return loaded
 
 
 def _unsafe(names: list[str]) -> list[str]:
@@ -119,7 +135,22 @@ def _short_reason(error: BaseException) -> str:
     lines = [line.strip() for line in text.splitlines() if line.strip()]
     advice = ("weights_only", "Weights only", "Please", "Check the documentation", "trusted")
     useful = [line for line in lines if not any(word in line for word in advice)]
-    return useful[0] if useful else type(error).__name__
+    return useful[0][:300] if useful else type(error).__name__
+
+
+def _key_name(key: Any) -> str:
+    """A key of a file's dict for a message: names as they are, anything else as a short repr."""
+    return key[:40] if isinstance(key, str) else _short(key)
+
+
+def _short(value: Any) -> str:
+    """A short repr of data read from a file: bounded in length and depth, never recursing."""
+    return _REPR.repr(value)
+
+
+_REPR = reprlib.Repr()
+_REPR.maxlevel, _REPR.maxstring, _REPR.maxother = 2, 40, 40
+_REPR.maxlist = _REPR.maxdict = _REPR.maxtuple = _REPR.maxset = 4
 
 
 def check_weights(model: nn.Module, state_dict: Mapping[str, Any], source: str) -> None:
@@ -141,10 +172,11 @@ def _check_against(
     present = [k for k in state_dict if k in expected]
     tensors = [k for k in present if _dense(state_dict[k])]
     not_tensors = [f"{k}: {type(state_dict[k]).__name__}" for k in present if k not in tensors]
+    misshaped_keys = {k for k in tensors if tuple(state_dict[k].shape) != tuple(expected[k].shape)}
     misshaped = [
         f"{k}: checkpoint {list(state_dict[k].shape)} vs model {list(expected[k].shape)}"
         for k in tensors
-        if tuple(state_dict[k].shape) != tuple(expected[k].shape)
+        if k in misshaped_keys
     ]
     mistyped = [
         f"{k}: checkpoint {state_dict[k].dtype} vs model {expected[k].dtype}"
@@ -152,10 +184,13 @@ def _check_against(
         if state_dict[k].is_complex()
         or state_dict[k].is_floating_point() != expected[k].is_floating_point()
     ]
+    # only weights of the model's shape: their size is the model's, never what a file's
+    # view declares (a zero stride can show billions of elements of one stored number)
     non_finite = [
         k
         for k in tensors
-        if state_dict[k].is_floating_point() and not torch.isfinite(state_dict[k]).all()
+        if k not in misshaped_keys and state_dict[k].is_floating_point()
+        if not _all_finite(state_dict[k])
     ]
     if not (missing or unexpected or not_tensors or misshaped or mistyped or non_finite):
         return
@@ -174,6 +209,34 @@ def _check_against(
     raise CheckpointError("\n".join(lines))
 
 
+FINITE_CHUNK = 1 << 22
+"""Elements checked at a time by `_all_finite`: its temporaries stay at a few megabytes."""
+
+
+def _all_finite(tensor: Tensor) -> bool:
+    """Whether every element of ``tensor`` is finite, never materialising more than its storage.
+
+    A view that shows more elements than the storage span it reaches (zero or overlapping
+    strides) is checked through that span instead: every element it shows lies there.
+    Either way the check runs `FINITE_CHUNK` elements at a time.
+    """
+    if tensor.numel() == 0:
+        return True
+    span = 1 + sum((n - 1) * step for n, step in zip(tensor.shape, tensor.stride(), strict=True))
+    if tensor.is_contiguous():
+        flat = tensor.reshape(-1)
+    elif span <= tensor.numel():
+        flat = tensor.flatten()  # a copy no larger than the storage it views
+    else:
+        flat = tensor.new_empty(0).set_(
+            tensor.untyped_storage(), tensor.storage_offset(), (span,), (1,)
+        )
+    return all(
+        bool(torch.isfinite(flat[start : start + FINITE_CHUNK]).all())
+        for start in range(0, flat.numel(), FINITE_CHUNK)
+    )
+
+
 def _dense(value: Any) -> bool:
     """Whether ``value`` is an ordinary tensor with data (not sparse, quantized or meta)."""
     return (
@@ -190,14 +253,42 @@ def load_weights(model: nn.Module, state_dict: Mapping[str, Tensor], source: str
     model.load_state_dict(dict(state_dict), strict=True)
 
 
+CONFIG_DEPTH = 3
+"""Deepest nesting of a model config: the config, its backbone, the backbone's widths."""
+
+CONFIG_ITEMS = 256
+"""Most values in a model config, counting those inside lists and dicts (a preset has 30)."""
+
+
 def _config(data: Any, source: str) -> ModelConfig:
-    """The checkpoint's model config, validated (types and ranges) before any module exists."""
+    """The checkpoint's model config, validated (types and ranges) before any module exists.
+
+    Its shape is bounded first (`CONFIG_DEPTH` levels, `CONFIG_ITEMS` values): the range
+    checks print the values they refuse.
+    """
     if not isinstance(data, Mapping):
         raise CheckpointError(f"{source}: 'config' is a {type(data).__name__}, not a mapping")
+    if nesting_depth(dict(data), CONFIG_DEPTH) > CONFIG_DEPTH:
+        raise CheckpointError(
+            f"{source}: invalid model config: values nested more than {CONFIG_DEPTH} levels deep"
+        )
+    if _count_values(data) > CONFIG_ITEMS:
+        raise CheckpointError(f"{source}: invalid model config: more than {CONFIG_ITEMS} values")
+    if not all(isinstance(key, str) for key in data):
+        raise CheckpointError(f"{source}: invalid model config: a key that is not a name")
     try:
         return ModelConfig.from_dict(dict(data))
     except (ValueError, TypeError) as error:
         raise CheckpointError(f"{source}: invalid model config: {error}") from None
+
+
+def _count_values(data: Any) -> int:
+    """Values in ``data`` and the lists and dicts in it (depth is already bounded)."""
+    if isinstance(data, Mapping):
+        return len(data) + sum(_count_values(v) for v in data.values())
+    if isinstance(data, (list, tuple)):
+        return len(data) + sum(_count_values(v) for v in data)
+    return 0
 
 
 def _weights(checkpoint: Mapping[str, Any], source: str) -> dict[str, Any]:
@@ -235,9 +326,8 @@ def checkpoint_contents(
     if isinstance(checkpoint.get("format"), str) and checkpoint["format"] == FORMAT:
         version = checkpoint.get("version")
         if type(version) is not int or version != VERSION:  # a tensor or bool is no version
-            raise CheckpointError(
-                f"{source}: unsupported taptr checkpoint version {checkpoint.get('version')!r:.40}"
-            )
+            shown_version = _short(checkpoint.get("version"))
+            raise CheckpointError(f"{source}: unsupported taptr checkpoint version {shown_version}")
         config = _config(checkpoint.get("config"), source)
         weights = _weights(checkpoint, source)
     elif looks_official(checkpoint):
@@ -250,7 +340,7 @@ def checkpoint_contents(
         raise CheckpointError(
             f"{source} is neither a taptr checkpoint (no 'format': 'taptr' entry) nor an "
             f"official TAPTR release (no 'ema_model' / 'model' weights with official key "
-            f"names); top-level keys: {', '.join(map(str, list(checkpoint)[:10])) or 'none'}"
+            f"names); top-level keys: {', '.join(map(_key_name, list(checkpoint)[:10])) or 'none'}"
         )
     _check_against(_skeleton(config), weights, source)
     return config, weights
@@ -359,7 +449,7 @@ def _stored_threshold(checkpoint: Any, source: str) -> float | None:
         return None
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < 1:
         raise CheckpointError(
-            f"{source}: visibility_threshold must be a number in (0, 1), got {value!r:.40}"
+            f"{source}: visibility_threshold must be a number in (0, 1), got {_short(value)}"
         )
     return float(value)
 

@@ -13,6 +13,7 @@ from taptr.cli.model_options import (
     load_predictor,
 )
 from taptr.cli.options import check_at_least, check_output_file
+from taptr.cli.run_memory import check_run_memory
 
 if TYPE_CHECKING:
     from collections.abc import Iterator
@@ -88,6 +89,14 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"--query-frame {args.query_frame} outside [0, {declared})")
     predictor = load_predictor(args)
     if info.num_frames is not None:
+        check_run_memory(
+            args,
+            predictor,
+            num_frames=min(info.num_frames, args.max_frames or info.num_frames),
+            num_points=len(queries),
+            frame_size=(info.height, info.width),
+            whole_video=False,
+        )
         # frame by frame; frames before a later query frame come from a backward read
         try:
             edited = _edited_frames(args, predictor, queries, mask, overlay, info.num_frames)

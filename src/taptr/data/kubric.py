@@ -78,7 +78,9 @@ def _frame_paths(folder: Path) -> list[Path]:
 def _read_frames(paths: list[Path], bgr: bool) -> np.ndarray:
     height, width = image_size(paths[0], str(paths[0]))
     needed = len(paths) * height * width * 3
-    limits.check("video_bytes", needed, f"{paths[0].parent}: {len(paths)} frames of {width}x{height}")
+    limits.check(
+        "video_bytes", needed, f"{paths[0].parent}: {len(paths)} frames of {width}x{height}"
+    )
     video = np.empty((len(paths), height, width, 3), np.uint8)
     for index, path in enumerate(paths):
         # header first, decoded by the library that read it (taptr.io.image_guard)

@@ -38,6 +38,7 @@ FRAME_FORMATS = ("PNG", "JPEG")
 STILL_FORMATS = ("PNG", "JPEG", "BMP", "TIFF", "WEBP", "PPM")
 """Formats of masks, overlays and photographs: the common lossless and photo formats."""
 
+
 class NotAnImageError(ValueError):
     """A file whose header is not that of an accepted image format; it was not decoded."""
 

@@ -160,13 +160,12 @@ def _counted(source: Path, frames: Iterator[np.ndarray]) -> Iterator[np.ndarray]
 
     The header can understate the count: what is really decoded is counted.
     """
-    total, count = 0, 0
-    for frame in frames:
+    total = 0
+    for count, frame in enumerate(frames):
         total += frame.nbytes
         if total > limits.limit("video_bytes"):
             what = f"{source}: more than {count} frames of {frame.shape[1]}x{frame.shape[0]}"
             limits.check("video_bytes", total, what)
-        count += 1
         yield frame
 
 
