@@ -17,11 +17,12 @@ add more entries next to these. Inference uses ``ema`` when present. An optional
 from __future__ import annotations
 
 import argparse
+import contextlib
 import functools
 import os
 import reprlib
 import warnings
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -34,6 +35,7 @@ from taptr.io.atomic import atomic_path
 from taptr.io.checkpoint_scan import ScanError, scan_checkpoint
 from taptr.io.file_kind import kind, require_file, shown
 from taptr.io.nesting import NestingError, check_nesting, nesting_depth
+from taptr.memory_estimate import allocator_failure
 from taptr.model.build import build_model
 from taptr.model.taptr import TAPTR
 from taptr.official.convert import (
@@ -225,8 +227,8 @@ def _all_finite(tensor: Tensor) -> bool:
     span = 1 + sum((n - 1) * step for n, step in zip(tensor.shape, tensor.stride(), strict=True))
     if tensor.is_contiguous():
         flat = tensor.reshape(-1)
-    elif span <= tensor.numel():
-        flat = tensor.flatten()  # a copy no larger than the storage it views
+    elif tensor.numel() <= span:
+        flat = tensor.flatten()  # a copy no larger than the storage span it views
     else:
         flat = tensor.new_empty(0).set_(
             tensor.untyped_storage(), tensor.storage_offset(), (span,), (1,)
@@ -351,7 +353,8 @@ def read_checkpoint(path: str | os.PathLike[str]) -> tuple[ModelConfig, dict[str
 
     For copying a file's weights into a model that exists already (fine-tuning).
     """
-    return checkpoint_contents(_read_mapping(path), str(path))
+    with _named_failures(path):
+        return checkpoint_contents(_read_mapping(path), str(path))
 
 
 def model_from_checkpoint(
@@ -389,10 +392,40 @@ def load_checkpoint_and_threshold(
     path: str | os.PathLike[str], *, device: str | torch.device = "cpu"
 ) -> tuple[TAPTR, float | None]:
     """`load_checkpoint` and `read_visibility_threshold` of one file, reading it once."""
-    checkpoint = _read_mapping(path)
-    model, weights = model_from_checkpoint(checkpoint, str(path))
-    load_weights(model, weights, str(path))
-    return model.to(device).eval(), _stored_threshold(checkpoint, str(path))
+    with _named_failures(path):
+        checkpoint = _read_mapping(path)
+        model, weights = model_from_checkpoint(checkpoint, str(path))
+        load_weights(model, weights, str(path))
+        return model.to(device).eval(), _stored_threshold(checkpoint, str(path))
+
+
+_UNNAMED_FAILURES = (
+    RuntimeError,
+    TypeError,
+    AttributeError,
+    LookupError,
+    OverflowError,
+    RecursionError,
+)
+"""What PyTorch and the checks may raise on a strange file without naming it."""
+
+
+@contextlib.contextmanager
+def _named_failures(path: str | os.PathLike[str]) -> Iterator[None]:
+    """Turns an unnamed failure on a file's content into a one-line `CheckpointError`.
+
+    An allocator's failure stays what it is: the command line words it with the knobs
+    (`taptr.memory_estimate.allocator_failure`).
+    """
+    try:
+        yield
+    except _UNNAMED_FAILURES as error:
+        if allocator_failure(error):
+            raise
+        reason = " ".join(str(error).split())[:200] or type(error).__name__
+        raise CheckpointError(
+            f"cannot use {shown(path)}: {type(error).__name__}: {reason}"
+        ) from None
 
 
 def _read_mapping(path: str | os.PathLike[str]) -> Mapping[str, Any]:

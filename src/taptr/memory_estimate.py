@@ -65,7 +65,13 @@ OVERHEAD = 64 * 1024**2
 SEGMENT_FRAMES = 32
 """Frames a backward read holds (`taptr.io.reverse_frames.SEGMENT_FRAMES`)."""
 
-ALLOCATOR_WORDS = ("not enough memory", "out of memory", "cannot allocate memory", "bad_alloc")
+ALLOCATOR_WORDS = (
+    "not enough memory",
+    "out of memory",
+    "cannot allocate memory",
+    "can't allocate memory",
+    "bad_alloc",
+)
 """Phrases of allocators' failure messages (PyTorch's CPU and CUDA allocators, glibc)."""
 
 
