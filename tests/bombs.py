@@ -11,6 +11,7 @@ import io
 import pickle
 import struct
 import zipfile
+import zlib
 from pathlib import Path
 from typing import Any
 
@@ -104,9 +105,7 @@ def png_bytes(height: int, width: int, value: int = 0) -> bytes:
     return stream.getvalue()
 
 
-def png_bomb(
-    width: int = 100_000, height: int = 100_000, depth: int = 8, colour: int = 0
-) -> bytes:
+def png_bomb(width: int = 100_000, height: int = 100_000, depth: int = 8, colour: int = 0) -> bytes:
     """A PNG header declaring ``width`` × ``height`` with a tiny (broken) body.
 
     ``depth`` bits per sample and ``colour`` type (0 grey, 2 RGB, 6 RGBA): 16-bit RGBA
@@ -241,21 +240,45 @@ def deflated_checkpoint(path: Path, inflated: int) -> Path:
     """A zip checkpoint whose one storage record deflates ``inflated`` zero bytes to ~0.1%.
 
     The storage declares exactly what the record inflates to, so every size the file
-    states is honest; only the file is a thousand times smaller than what it holds.
+    states is honest; only the file is a thousand times smaller than what it holds. The
+    deflate stream is one compressed MiB of zeros, flushed so that it stands alone, written
+    ``inflated`` / 1 MiB times (so a 768 MiB bomb takes no time to make).
     """
+    mib = 1 << 20
     numel = inflated // 4
     plain = torch_zip(path, {"w": tensor_ref("0", numel)}, {"0": (torch.FloatStorage, numel, b"")})
     with zipfile.ZipFile(plain) as archive:
         records = {info.filename: archive.read(info) for info in archive.infolist()}
-    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as archive:
-        for name, data in records.items():
-            if name.endswith("data/0"):
-                with archive.open(name, "w", force_zip64=True) as stream:
-                    for _ in range(inflated // (1 << 20)):
-                        stream.write(bytes(1 << 20))
-            else:
-                archive.writestr(name, data)
+    piece = zlib.compressobj(9, zlib.DEFLATED, -15)
+    segment = piece.compress(bytes(mib)) + piece.flush(zlib.Z_FULL_FLUSH)
+    crc = 0
+    for _ in range(inflated // mib):
+        crc = zlib.crc32(bytes(mib), crc)
+    entries = []
+    for name, data in records.items():
+        if name.endswith("data/0"):
+            stream = segment * (inflated // mib) + zlib.compressobj(9, zlib.DEFLATED, -15).flush()
+            entries.append((name, 8, stream, crc, inflated // mib * mib))
+        else:
+            entries.append((name, 0, data, zlib.crc32(data), len(data)))
+    path.write_bytes(_zip(entries))
     return path
+
+
+def _zip(entries: list[tuple[str, int, bytes, int, int]]) -> bytes:
+    """A zip archive of (name, method, stored bytes, crc, uncompressed size) entries."""
+    body, directory = b"", b""
+    for name, method, data, crc, size in entries:
+        encoded = name.encode()
+        fields = (20, 0, method, 0, 33, crc, len(data), size, len(encoded))
+        directory += (
+            struct.pack("<4s6H3L5H2L", b"PK\x01\x02", 20, *fields, 0, 0, 0, 0, 0, len(body))
+            + encoded
+        )
+        body += struct.pack("<4s5H3L2H", b"PK\x03\x04", *fields, 0) + encoded + data
+    count = len(entries)
+    end = struct.pack("<4s4H2LH", b"PK\x05\x06", 0, 0, count, count, len(directory), len(body), 0)
+    return body + directory + end
 
 
 def view_checkpoint(path: Path, numel: int) -> Path:
