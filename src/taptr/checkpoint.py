@@ -17,25 +17,29 @@ add more entries next to these. Inference uses ``ema`` when present. An optional
 from __future__ import annotations
 
 import argparse
-import contextlib
 import functools
 import os
-import reprlib
 import warnings
-from collections.abc import Iterator, Mapping
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import torch
 from torch import Tensor, nn
 
+from taptr.checkpoint_guards import (
+    all_finite,
+    config_shape_problem,
+    key_name,
+    named_failures,
+    short_repr,
+)
 from taptr.config import ModelConfig, taptrv1, taptrv2
 from taptr.io import limits
 from taptr.io.atomic import atomic_path
 from taptr.io.checkpoint_scan import ScanError, scan_checkpoint
 from taptr.io.file_kind import kind, require_file, shown
-from taptr.io.nesting import NestingError, check_nesting, nesting_depth
-from taptr.memory_estimate import allocator_failure
+from taptr.io.nesting import NestingError, check_nesting
 from taptr.model.build import build_model
 from taptr.model.taptr import TAPTR
 from taptr.official.convert import (
@@ -140,21 +144,6 @@ def _short_reason(error: BaseException) -> str:
     return useful[0][:300] if useful else type(error).__name__
 
 
-def _key_name(key: Any) -> str:
-    """A key of a file's dict for a message: names as they are, anything else as a short repr."""
-    return key[:40] if isinstance(key, str) else _short(key)
-
-
-def _short(value: Any) -> str:
-    """A short repr of data read from a file: bounded in length and depth, never recursing."""
-    return _REPR.repr(value)
-
-
-_REPR = reprlib.Repr()
-_REPR.maxlevel, _REPR.maxstring, _REPR.maxother = 2, 40, 40
-_REPR.maxlist = _REPR.maxdict = _REPR.maxtuple = _REPR.maxset = 4
-
-
 def check_weights(model: nn.Module, state_dict: Mapping[str, Any], source: str) -> None:
     """Raises `CheckpointError` listing missing, unexpected and mismatched keys, if any.
 
@@ -192,7 +181,7 @@ def _check_against(
         k
         for k in tensors
         if k not in misshaped_keys and state_dict[k].is_floating_point()
-        if not _all_finite(state_dict[k])
+        if not all_finite(state_dict[k])
     ]
     if not (missing or unexpected or not_tensors or misshaped or mistyped or non_finite):
         return
@@ -211,34 +200,6 @@ def _check_against(
     raise CheckpointError("\n".join(lines))
 
 
-FINITE_CHUNK = 1 << 22
-"""Elements checked at a time by `_all_finite`: its temporaries stay at a few megabytes."""
-
-
-def _all_finite(tensor: Tensor) -> bool:
-    """Whether every element of ``tensor`` is finite, never materialising more than its storage.
-
-    A view that shows more elements than the storage span it reaches (zero or overlapping
-    strides) is checked through that span instead: every element it shows lies there.
-    Either way the check runs `FINITE_CHUNK` elements at a time.
-    """
-    if tensor.numel() == 0:
-        return True
-    span = 1 + sum((n - 1) * step for n, step in zip(tensor.shape, tensor.stride(), strict=True))
-    if tensor.is_contiguous():
-        flat = tensor.reshape(-1)
-    elif tensor.numel() <= span:
-        flat = tensor.flatten()  # a copy no larger than the storage span it views
-    else:
-        flat = tensor.new_empty(0).set_(
-            tensor.untyped_storage(), tensor.storage_offset(), (span,), (1,)
-        )
-    return all(
-        bool(torch.isfinite(flat[start : start + FINITE_CHUNK]).all())
-        for start in range(0, flat.numel(), FINITE_CHUNK)
-    )
-
-
 def _dense(value: Any) -> bool:
     """Whether ``value`` is an ordinary tensor with data (not sparse, quantized or meta)."""
     return (
@@ -255,42 +216,21 @@ def load_weights(model: nn.Module, state_dict: Mapping[str, Tensor], source: str
     model.load_state_dict(dict(state_dict), strict=True)
 
 
-CONFIG_DEPTH = 3
-"""Deepest nesting of a model config: the config, its backbone, the backbone's widths."""
-
-CONFIG_ITEMS = 256
-"""Most values in a model config, counting those inside lists and dicts (a preset has 30)."""
-
-
 def _config(data: Any, source: str) -> ModelConfig:
     """The checkpoint's model config, validated (types and ranges) before any module exists.
 
-    Its shape is bounded first (`CONFIG_DEPTH` levels, `CONFIG_ITEMS` values): the range
+    Its shape is bounded first (`taptr.checkpoint_guards.config_shape_problem`): the range
     checks print the values they refuse.
     """
     if not isinstance(data, Mapping):
         raise CheckpointError(f"{source}: 'config' is a {type(data).__name__}, not a mapping")
-    if nesting_depth(dict(data), CONFIG_DEPTH) > CONFIG_DEPTH:
-        raise CheckpointError(
-            f"{source}: invalid model config: values nested more than {CONFIG_DEPTH} levels deep"
-        )
-    if _count_values(data) > CONFIG_ITEMS:
-        raise CheckpointError(f"{source}: invalid model config: more than {CONFIG_ITEMS} values")
-    if not all(isinstance(key, str) for key in data):
-        raise CheckpointError(f"{source}: invalid model config: a key that is not a name")
+    problem = config_shape_problem(data)
+    if problem:
+        raise CheckpointError(f"{source}: invalid model config: {problem}")
     try:
         return ModelConfig.from_dict(dict(data))
     except (ValueError, TypeError) as error:
         raise CheckpointError(f"{source}: invalid model config: {error}") from None
-
-
-def _count_values(data: Any) -> int:
-    """Values in ``data`` and the lists and dicts in it (depth is already bounded)."""
-    if isinstance(data, Mapping):
-        return len(data) + sum(_count_values(v) for v in data.values())
-    if isinstance(data, (list, tuple)):
-        return len(data) + sum(_count_values(v) for v in data)
-    return 0
 
 
 def _weights(checkpoint: Mapping[str, Any], source: str) -> dict[str, Any]:
@@ -328,7 +268,7 @@ def checkpoint_contents(
     if isinstance(checkpoint.get("format"), str) and checkpoint["format"] == FORMAT:
         version = checkpoint.get("version")
         if type(version) is not int or version != VERSION:  # a tensor or bool is no version
-            shown_version = _short(checkpoint.get("version"))
+            shown_version = short_repr(checkpoint.get("version"))
             raise CheckpointError(f"{source}: unsupported taptr checkpoint version {shown_version}")
         config = _config(checkpoint.get("config"), source)
         weights = _weights(checkpoint, source)
@@ -342,7 +282,7 @@ def checkpoint_contents(
         raise CheckpointError(
             f"{source} is neither a taptr checkpoint (no 'format': 'taptr' entry) nor an "
             f"official TAPTR release (no 'ema_model' / 'model' weights with official key "
-            f"names); top-level keys: {', '.join(map(_key_name, list(checkpoint)[:10])) or 'none'}"
+            f"names); top-level keys: {', '.join(map(key_name, list(checkpoint)[:10])) or 'none'}"
         )
     _check_against(_skeleton(config), weights, source)
     return config, weights
@@ -353,7 +293,7 @@ def read_checkpoint(path: str | os.PathLike[str]) -> tuple[ModelConfig, dict[str
 
     For copying a file's weights into a model that exists already (fine-tuning).
     """
-    with _named_failures(path):
+    with named_failures(path):
         return checkpoint_contents(_read_mapping(path), str(path))
 
 
@@ -392,40 +332,11 @@ def load_checkpoint_and_threshold(
     path: str | os.PathLike[str], *, device: str | torch.device = "cpu"
 ) -> tuple[TAPTR, float | None]:
     """`load_checkpoint` and `read_visibility_threshold` of one file, reading it once."""
-    with _named_failures(path):
+    with named_failures(path):
         checkpoint = _read_mapping(path)
         model, weights = model_from_checkpoint(checkpoint, str(path))
         load_weights(model, weights, str(path))
         return model.to(device).eval(), _stored_threshold(checkpoint, str(path))
-
-
-_UNNAMED_FAILURES = (
-    RuntimeError,
-    TypeError,
-    AttributeError,
-    LookupError,
-    OverflowError,
-    RecursionError,
-)
-"""What PyTorch and the checks may raise on a strange file without naming it."""
-
-
-@contextlib.contextmanager
-def _named_failures(path: str | os.PathLike[str]) -> Iterator[None]:
-    """Turns an unnamed failure on a file's content into a one-line `CheckpointError`.
-
-    An allocator's failure stays what it is: the command line words it with the knobs
-    (`taptr.memory_estimate.allocator_failure`).
-    """
-    try:
-        yield
-    except _UNNAMED_FAILURES as error:
-        if allocator_failure(error):
-            raise
-        reason = " ".join(str(error).split())[:200] or type(error).__name__
-        raise CheckpointError(
-            f"cannot use {shown(path)}: {type(error).__name__}: {reason}"
-        ) from None
 
 
 def _read_mapping(path: str | os.PathLike[str]) -> Mapping[str, Any]:
@@ -482,7 +393,7 @@ def _stored_threshold(checkpoint: Any, source: str) -> float | None:
         return None
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < 1:
         raise CheckpointError(
-            f"{source}: visibility_threshold must be a number in (0, 1), got {_short(value)}"
+            f"{source}: visibility_threshold must be a number in (0, 1), got {short_repr(value)}"
         )
     return float(value)
 
