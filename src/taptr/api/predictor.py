@@ -184,7 +184,7 @@ class Predictor:
             queries = grid_queries(grid_size, grid_query_frame, height, width)
         assert queries is not None
         query = query_tensor(queries, batch, num_frames, height, width)
-        self.check_memory(num_frames, query.shape[1], (height, width), backward)
+        self._check_memory(num_frames, query.shape[1], (height, width), backward)
         windows = len(window_ranges(num_frames, self.model.window_size, self.model.window_stride))
         # the reversed pass runs only for videos with a query after frame 0
         passes = sum(1 + (backward and needs_backward(query[b])) for b in range(batch))
@@ -197,7 +197,7 @@ class Predictor:
         visibility = logits.sigmoid() > self.visibility_threshold
         return TrackingResult(tracks, visibility, logits, query)
 
-    def check_memory(
+    def _check_memory(
         self, num_frames: int, num_points: int, frame_size: tuple[int, int], backward: bool
     ) -> None:
         """Refuses a run whose estimated peak memory exceeds the budget (before it starts).
