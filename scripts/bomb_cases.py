@@ -64,6 +64,15 @@ def _cli(*argv: str) -> None:
         raise RuntimeError(f"status {status}: {err.getvalue().strip()[-300:]}")
 
 
+def _findings(root: str) -> None:
+    """``taptr check-data ROOT``'s check; its first error becomes a ValueError."""
+    from taptr.data.check import check_kubric_folder
+
+    report = check_kubric_folder(root)
+    if report.errors:
+        raise ValueError(f"check-data: {report.errors[0].message}")
+
+
 def _clip(folder: Path) -> Path:
     from taptr.io.video import write_video
 
@@ -160,8 +169,8 @@ def _cases(folder: Path) -> dict[str, Callable[[], object]]:
         "frame folder: Radiance HDR named 0.png": lambda: read_video(
             _write(f / "h" / "0.png", bombs.hdr_image(1000, 1000)).parent
         ),
-        "check-data: HDR named 001.png": lambda: _cli(
-            "check-data", str(_kubric_with(f, bombs.hdr_image(1000, 1000)))
+        "check-data: HDR named 001.png": lambda: _findings(
+            str(_kubric_with(f, bombs.hdr_image(1000, 1000)))
         ),
         "pth: record deflating to 3 GiB (3 MB file)": lambda: load_checkpoint(
             bombs.deflated_checkpoint(f / "e.pth", 3 * GIB)

@@ -122,7 +122,7 @@ def decode_frames(frames: Any, label: str = "video") -> np.ndarray:
     if isinstance(frames, np.ndarray) and frames.dtype == np.uint8 and frames.ndim == 4:
         limits.check("video_frames", len(frames), f"{label}: {len(frames):,} frames")
         return frames
-    if isinstance(frames, np.ndarray) and frames.dtype != object:
+    if isinstance(frames, np.ndarray) and frames.dtype.kind not in "OS":  # objects, bytes
         # a decoded video of another type or shape: not a list of encoded frames either
         raise ValueError(
             f"{label}: 'video' is a {frames.dtype} array of shape {frames.shape}; expected "

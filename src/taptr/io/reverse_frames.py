@@ -21,10 +21,10 @@ import numpy as np
 from taptr.io.video import (
     _check_source,
     _image_files,
-    _open_video,
     _read_images,
     _reason,
     frame_size_check,
+    open_video,
     rgb,
 )
 
@@ -77,7 +77,7 @@ def _reversed_video(source: Path, max_frames: int | None, segment: int) -> Itera
 
 def _presentation_times(source: Path) -> list[int | None]:
     """Every frame's timestamp in display order, from the packets alone."""
-    with _open_video(source) as container:
+    with open_video(source) as container:
         stream = container.streams.video[0]
         try:
             stamps = [p.pts for p in container.demux(stream) if p.size]
@@ -94,7 +94,7 @@ def _segment_by_seeking(source: Path, wanted: list[int | None]) -> list[np.ndarr
     assert first is not None and last is not None
     keep = set(wanted)
     found: list[np.ndarray] = []
-    with _open_video(source) as container:
+    with open_video(source) as container:
         stream = container.streams.video[0]
         try:
             container.seek(first, stream=stream, backward=True, any_frame=False)
@@ -109,7 +109,7 @@ def _segment_by_seeking(source: Path, wanted: list[int | None]) -> list[np.ndarr
 
 
 def _segment_from_start(source: Path, start: int, end: int) -> list[np.ndarray]:
-    with _open_video(source) as container:
+    with open_video(source) as container:
         stream = container.streams.video[0]
         try:
             frames = [rgb(f) for f in islice(container.decode(stream), start, end)]

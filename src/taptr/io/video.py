@@ -40,7 +40,7 @@ import numpy as np
 
 from taptr.io import limits
 from taptr.io.atomic import atomic_path
-from taptr.io.file_kind import is_regular_file, require_file_or_folder
+from taptr.io.file_kind import is_regular_file, require_file, require_file_or_folder
 from taptr.io.image_guard import image_size, read_image
 
 VIDEO_SUFFIXES = (".mp4", ".webm", ".avi", ".gif", ".mov", ".mkv")
@@ -89,7 +89,7 @@ def video_info(path: str | os.PathLike[str]) -> VideoInfo:
         images = _image_files(source)
         height, width = image_size(images[0], str(images[0]))
         return VideoInfo(num_frames=len(images), fps=None, height=height, width=width)
-    with _open_video(source) as container:
+    with open_video(source) as container:
         stream = container.streams.video[0]
         first = _first(source, _decode(source, container, stride=1))
         height, width = first.shape[:2]
@@ -273,13 +273,13 @@ def _declared_size(source: Path) -> tuple[int | None, int, int]:
     if source.is_dir():
         images = _image_files(source)
         return (len(images), *image_size(images[0], str(images[0])))
-    with _open_video(source) as container:
+    with open_video(source) as container:
         stream = container.streams.video[0]
         return stream.frames or None, stream.codec_context.height, stream.codec_context.width
 
 
 def _iter_video(source: Path, stride: int, max_frames: int | None) -> Iterator[np.ndarray]:
-    with _open_video(source) as container:
+    with open_video(source) as container:
         declared = container.streams.video[0].frames
         frames = _decode(source, container, stride)
         yield _first(source, frames)
@@ -347,12 +347,20 @@ def _read_images(images: list[Path]) -> Iterator[np.ndarray]:
         yield image
 
 
-def _open_video(path: Path) -> av.container.InputContainer:
+def open_video(path: str | os.PathLike[str]) -> av.container.InputContainer:
     """Opens a video file and checks its first video stream's header before any decoding.
 
-    The stated frame size must be known and within ``image_pixels``; the decoder is then
-    told that bound (FFmpeg's ``max_pixels``), so no frame decoded later can exceed it.
+    The guarded way to open a video for any reader that decodes it with PyAV: the path
+    must be a regular file (a FIFO would block), the stated frame size must be known and
+    within ``image_pixels``, and the decoder is then told that bound (FFmpeg's
+    ``max_pixels``), so no frame decoded later can exceed it.
+
+    Raises:
+        FileNotFoundError: nothing at ``path``.
+        ValueError: not a regular file, not a readable video, no video stream, no stated
+            frame size, or frames above the ``image_pixels`` limit.
     """
+    path = require_file(path, "video")
     try:
         container = av.open(str(path))
     except av.error.FFmpegError as error:
