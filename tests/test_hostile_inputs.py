@@ -136,6 +136,26 @@ def test_image_that_is_not_png_under_a_png_name_is_refused_not_decoded_by_conten
     assert len(report.errors) == 1 and "not a readable image" in report.errors[0].message
 
 
+def test_demo_upload_to_paste_is_read_header_first(tmp_path):
+    import inspect
+
+    import taptr.apps.demo.app as app
+    from taptr.apps.demo.uploads import DemoError, read_paste_image
+
+    bomb = tmp_path / "upload.png"
+    bomb.write_bytes(bombs.png_bomb(25_000, 25_000, depth=16, colour=6))
+    with pytest.raises(DemoError, match="the image to paste.*TAPTR_MAX_IMAGE_PIXELS"):
+        read_paste_image(bomb)
+    (tmp_path / "hdr.png").write_bytes(bombs.hdr_image(8, 8))
+    with pytest.raises(DemoError, match="not a readable image"):
+        read_paste_image(tmp_path / "hdr.png")
+    grey = tmp_path / "grey.png"
+    grey.write_bytes(bombs.png_bytes(6, 5, 200))
+    assert read_paste_image(grey).shape == (6, 5, 3)
+    # the page hands over the file's path, so Gradio only opens the header
+    assert 'type="filepath"' in inspect.getsource(app._edit_tab)
+
+
 @pytest.mark.parametrize(
     ("variable", "value", "message"),
     [
