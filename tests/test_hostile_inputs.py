@@ -144,7 +144,7 @@ def test_demo_upload_to_paste_is_read_header_first(tmp_path):
 
     bomb = tmp_path / "upload.png"
     bomb.write_bytes(bombs.png_bomb(25_000, 25_000, depth=16, colour=6))
-    with pytest.raises(DemoError, match="the image to paste.*TAPTR_MAX_IMAGE_PIXELS"):
+    with pytest.raises(DemoError, match=r"the image to paste.*TAPTR_MAX_IMAGE_PIXELS"):
         read_paste_image(bomb)
     (tmp_path / "hdr.png").write_bytes(bombs.hdr_image(8, 8))
     with pytest.raises(DemoError, match="not a readable image"):
@@ -222,8 +222,9 @@ def test_finiteness_check_never_materialises_more_than_a_storage(tmp_path, monke
     monkeypatch.setattr(
         torch,
         "isfinite",
-        lambda t: seen.append((t.numel(), t.untyped_storage().nbytes() // t.element_size()))
-        or real(t),
+        lambda t: (
+            seen.append((t.numel(), t.untyped_storage().nbytes() // t.element_size())) or real(t)
+        ),
     )
     with pytest.raises(CheckpointError, match="wrong shape"):
         load_checkpoint(tmp_path / "views.pth")
