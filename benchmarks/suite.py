@@ -12,6 +12,12 @@ Cases:
     points     10,000 vs 1,000 points at 256×256 (fast execution; the reference execution's
                N×N masks and all-frame features are the baseline at 1,000 points).
     gpu        800 and 5000 points on CUDA in float32 and bfloat16.
+    v3         TAPTRv3 ResNet-18 (384×512) and ResNet-50 (512×512) next to TAPTRv2 (512²),
+               24 frames, 800 points, reference vs fast.
+    v3-long    TAPTRv3-R18 fast over 1,000 frames, 800 points: time per frame at frame 24 and
+               at frame 1,000 of one run (the long-temporal attention grows with the video).
+    v3-memory  TAPTRv3-R18 fast over 1,000 frames at 100 and 800 points, the whole history
+               and a 24-frame history: peak memory.
     smoke      a tiny case that runs in seconds (what CI runs through the test suite).
 """
 
@@ -44,6 +50,14 @@ CASES: dict[str, list[list[str]]] = {
         ["--preset", "taptrv2", "--frames", "24", "--points", "800", "5000", "--device", "cuda",
          "--execution", "fast", "--dtype", dtype]
         for dtype in ("float32", "bfloat16")
+    ],
+    "v3": [["--preset", "taptrv3", "taptrv3-r50", "taptrv2", "--frames", "24", "--points", "800"]],
+    "v3-long": [
+        ["--preset", "taptrv3", "--frames", "1000", "--points", "800", "--execution", "fast"],
+    ],
+    "v3-memory": [
+        ["--preset", "taptrv3", "--frames", "1000", "--points", "100", "800", "--execution",
+         "fast", "--history-frames", "0", "24"],
     ],
     "smoke": [
         ["--preset", "tiny", "--frames", "9", "--points", "5", "--size", "32", "48", "--threads",

@@ -1,11 +1,13 @@
 """Writes compact copies of the official golden fixtures into tests/fixtures/.
 
-The fixtures of ../shared/reference/golden/ hold float32 videos that are exactly
-``normalize_frames(u8 / 255)`` of a uint8 video; storing the uint8 video (checked to
-reconstruct bit for bit) and only the keys the tests read keeps the repository small.
+The fixtures of ../shared/reference/golden/ and golden-v3/ hold float32 videos that are
+exactly ``normalize_frames(u8 / 255)`` of a uint8 video; storing the uint8 video (checked
+to reconstruct bit for bit, laid out (1, T, 3, H, W)) and only the keys the tests read
+keeps the repository small. The evaluation-protocol case keeps its 256 × 256 video as it
+is and drops only the long description (the ``.json`` next to it holds it).
 
 Usage:
-    python scripts/compact_golden.py [GOLDEN_DIR]
+    python scripts/compact_golden.py [REFERENCE_DIR]
 """
 
 import json
@@ -31,7 +33,10 @@ DROP_PREFIXES = (
     "conventions_json",
     "init_query_vis",
     "f64_init",
+    "frm_",
+    "f64_frm_",
 )
+V3_CASES = ("v3_r18_small", "v3_r18_long", "v3_r18_fifo")
 OUT = Path(__file__).resolve().parents[1] / "tests" / "fixtures"
 
 
@@ -50,6 +55,8 @@ def compact(src: Path) -> dict:
         if key.startswith(DROP_PREFIXES):
             continue
         value = z[key]
+        if key == "in_video_u8" and "in_video" in z.files:
+            continue  # rebuilt from in_video in the (1, T, 3, H, W) layout
         if key == "in_video":
             keep["in_video_u8"] = to_uint8(value)
         elif key == "dbg_memory_sample":
@@ -61,18 +68,31 @@ def compact(src: Path) -> dict:
     return keep
 
 
+def write(folder: Path, case: str, data: dict) -> None:
+    np.savez_compressed(OUT / f"{case}.npz", **data)
+    meta = json.loads((folder / f"{case}.json").read_text())
+    (OUT / f"{case}.json").write_text(json.dumps(meta, indent=1) + "\n")
+    print(case, sorted(data))
+
+
 def main() -> None:
-    golden = (
+    reference = (
         Path(sys.argv[1])
         if len(sys.argv) > 1
-        else Path(__file__).resolve().parents[2] / "shared/reference/golden"
+        else Path(__file__).resolve().parents[2] / "shared/reference"
     )
     for case in ("v2_small_nonsquare", "v2_long", "loss_v2", "v1_small"):
-        data = compact(golden / f"{case}.npz")
-        np.savez_compressed(OUT / f"{case}.npz", **data)
-        meta = json.loads((golden / f"{case}.json").read_text())
-        (OUT / f"{case}.json").write_text(json.dumps(meta, indent=1) + "\n")
-        print(case, sorted(data))
+        write(reference / "golden", case, compact(reference / "golden" / f"{case}.npz"))
+    for case in V3_CASES:
+        data = compact(reference / "golden-v3" / f"{case}.npz")
+        if case == "v3_r18_fifo":  # the held frames after the last one show the FIFO order
+            data["dbg_content_final"] = np.load(reference / "golden-v3" / f"{case}.npz")[
+                "dbg_content_final"
+            ]
+        write(reference / "golden-v3", case, data)
+    with np.load(reference / "golden-v3" / "v3_protocol_first.npz") as z:
+        protocol = {key: z[key] for key in z.files if key != "conventions_json"}
+    write(reference / "golden-v3", "v3_protocol_first", protocol)
 
 
 if __name__ == "__main__":

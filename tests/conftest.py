@@ -10,7 +10,12 @@ import pytest
 import torch
 from hypothesis import HealthCheck, settings
 
-from tests.helpers import seed1_official_weights
+from tests.helpers import (
+    V3_FINGERPRINT,
+    V3_SEED,
+    generated_official_weights,
+    seed1_official_weights,
+)
 
 if os.environ.get("PYTEST_XDIST_WORKER"):
     torch.set_num_threads(1)  # two workers on two cores: one thread each
@@ -71,4 +76,13 @@ def official_checkpoint(tmp_path_factory, official_state_dict) -> Path:
     """The seed-1 weights written as the authors' release is laid out."""
     path = tmp_path_factory.mktemp("official") / "taptrv2_seed1.pth"
     torch.save({"ema_model": official_state_dict}, path)
+    return path
+
+
+@pytest.fixture(scope="session")
+def official_v3_checkpoint(tmp_path_factory) -> Path:
+    """The v3 golden fixtures' TAPTRv3 ResNet-18 weights, laid out as the authors' release."""
+    weights = generated_official_weights("official-v3-r18-state-dict.txt", V3_SEED, V3_FINGERPRINT)
+    path = tmp_path_factory.mktemp("official_v3") / "TAPTRv3_resnet18_384x512.pth"
+    torch.save({"ema_model": weights}, path)
     return path

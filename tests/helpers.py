@@ -31,16 +31,28 @@ SEED1_FINGERPRINTS = {
 }
 """Fingerprints of the seed-1 weights the golden fixtures were made with, by key list."""
 
+V3_SEED = 240716
+V3_FINGERPRINT = "1107a079306d2ae4953c3c052d834f3daa40f10f4387ff6aabb2820233e8245c"
+"""The seed and fingerprint of the TAPTRv3 ResNet-18 weights of the v3 golden fixtures."""
 
-def seed1_official_weights(key_list_name: str) -> dict[str, torch.Tensor]:
-    """The golden fixtures' seed-1 official weights (``module.`` keys) for a key list."""
+
+def generated_official_weights(
+    key_list_name: str, seed: int, fingerprint: str | None = None
+) -> dict[str, torch.Tensor]:
+    """Official-layout weights (``module.`` keys) of the fixtures' generator for a key list."""
     spec = importlib.util.spec_from_file_location("make_weights", FIXTURES / "make_weights.py")
     make_weights = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(make_weights)
     key_list = make_weights.read_key_list(FIXTURES / key_list_name)
-    state_dict, _ = make_weights.make_state_dict(key_list, seed=1)
-    assert make_weights.fingerprint(state_dict) == SEED1_FINGERPRINTS[key_list_name]
+    state_dict, _ = make_weights.make_state_dict(key_list, seed=seed)
+    if fingerprint is not None:
+        assert make_weights.fingerprint(state_dict) == fingerprint
     return {"module." + k: torch.from_numpy(v) for k, v in state_dict.items()}
+
+
+def seed1_official_weights(key_list_name: str) -> dict[str, torch.Tensor]:
+    """The golden fixtures' seed-1 official weights (``module.`` keys) for a key list."""
+    return generated_official_weights(key_list_name, 1, SEED1_FINGERPRINTS[key_list_name])
 
 
 def golden_inputs(golden: dict[str, np.ndarray], dtype: torch.dtype = torch.float32):

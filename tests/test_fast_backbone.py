@@ -4,13 +4,13 @@ import torch
 from torchvision.ops import FrozenBatchNorm2d
 
 import taptr
-from taptr.model.backbone import ResNet50Body, frozen_norm_
+from taptr.model.backbone import ResNetBody, frozen_norm_
 from taptr.model.execution import EXECUTIONS
 
 
-def _resnet(generator: torch.Generator) -> ResNet50Body:
+def _resnet(generator: torch.Generator) -> ResNetBody:
     """A ResNet-50 trunk whose frozen norms are not the identity."""
-    body = ResNet50Body().eval()
+    body = ResNetBody().eval()
     for module in body.modules():
         if isinstance(module, FrozenBatchNorm2d):
             channels = module.weight.shape[0]
@@ -21,7 +21,7 @@ def _resnet(generator: torch.Generator) -> ResNet50Body:
     return body
 
 
-def _count_norm_calls(body: ResNet50Body) -> list[int]:
+def _count_norm_calls(body: ResNetBody) -> list[int]:
     calls = [0]
 
     def count(*args: object) -> None:

@@ -255,7 +255,7 @@ def test_input_size_4096_is_refused_by_the_estimate_before_tracking(monkeypatch)
     from taptr.api.predictor import Predictor
     from taptr.memory_estimate import MemoryEstimateError
 
-    monkeypatch.setattr(predictor_module, "run_windows", lambda *a: pytest.fail("tracked"))
+    monkeypatch.setattr(predictor_module, "run_tracker", lambda *a, **k: pytest.fail("tracked"))
     monkeypatch.setenv("TAPTR_MAX_MEMORY", "2G")
     predictor = Predictor(build_model("small").eval(), input_size=(4096, 4096), device="cpu")
     video = np.zeros((8, 32, 32, 3), np.uint8)

@@ -185,3 +185,19 @@ def test_gradient_norms_match_official(official_run):
     zero = expected == 0  # the intermediate visibility heads: their terms have weight 0
     assert zero.sum() == 8 and np.all(norms[zero] == 0)
     np.testing.assert_allclose(norms[~zero], expected[~zero], rtol=1e-3)
+
+
+def test_v3_supervises_positions_where_visible_only():
+    predicted = torch.full((1, 3, 2, 2), 0.5, dtype=torch.float64)
+    target = torch.full((1, 3, 2, 2), 0.25, dtype=torch.float64)
+    visible = torch.tensor([[[True, True], [True, False], [False, True]]])
+    logits = torch.zeros(1, 3, 2, 3, dtype=torch.float64)
+    targets = Targets(target, visible, torch.tensor([[0, 0]]))
+    v2 = tracking_loss(_output(1, predicted, logits), targets, LossWeights())
+    v3 = tracking_loss(
+        _output(1, predicted, logits), targets, LossWeights(occluded_positions=False)
+    )
+    # U holds frames 1 and 2 of both points; v3 keeps the two visible ones
+    assert v2.terms["position_0"].item() == pytest.approx(4 * 0.5 / 5)
+    assert v3.terms["position_0"].item() == pytest.approx(2 * 0.5 / 3)
+    assert v3.terms["visibility_0"].item() == v2.terms["visibility_0"].item()

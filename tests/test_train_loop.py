@@ -205,3 +205,34 @@ def test_extra_roots_mix_folders_into_one_clip_list(data, tmp_path):
         training_sequences(missing.data)
     with pytest.raises(ValueError, match=r"data\.root is empty"):
         training_sequences(_config(data, tmp_path, "data.root=").data)
+
+
+def test_a_v3_model_learns_with_its_recipe(data, tmp_path):
+    """TAPTRv3 trains through the per-frame driver; the long-temporal attention, the
+    context-aware similarity and the positions of visible entries only all get gradients."""
+    config = _config(
+        data,
+        tmp_path,
+        "model.preset=tiny-v3",
+        "model.input_size=[64,64]",
+        "supervise_occluded_positions=false",
+        "lr=1e-3",
+        "lr_backbone=1e-3",
+    )
+    info = data_parallel.setup("cpu")
+    run = loop._build(config, info, None)
+    batches = itertools.repeat(next(loop._batches(config, info, 0)))
+    weights = LossWeights(occluded_positions=False)
+    net = TrainingForward(run.model)
+    layer = run.model.decoder.layers[0]
+    watched = {
+        "long-temporal": layer.long_temporal.attention.in_proj_weight,
+        "similarity": layer.cross_attention.similarity.layers[0].weight,
+        "rotary": layer.long_temporal.rotary.freqs,
+    }
+    before = {name: param.detach().clone() for name, param in watched.items()}
+    losses = [loop._optimizer_step(net, run, batches, weights, config, info) for _ in range(8)]
+    assert losses[-1]["loss"] < 0.8 * losses[0]["loss"]
+    assert not torch.equal(watched["long-temporal"], before["long-temporal"])
+    assert not torch.equal(watched["similarity"], before["similarity"])
+    assert torch.equal(watched["rotary"], before["rotary"])  # a fixed table

@@ -34,7 +34,7 @@ from taptr.checkpoint_guards import (
     named_failures,
     short_repr,
 )
-from taptr.config import ModelConfig, taptrv1, taptrv2
+from taptr.config import ModelConfig
 from taptr.io import limits
 from taptr.io.atomic import atomic_path
 from taptr.io.checkpoint_scan import ScanError, scan_checkpoint
@@ -46,7 +46,7 @@ from taptr.official.convert import (
     ConversionError,
     convert_state_dict,
     looks_official,
-    official_version,
+    official_config,
     official_weights,
 )
 
@@ -75,9 +75,9 @@ def read_file(path: str | os.PathLike[str]) -> Any:
         FileNotFoundError: the path does not exist.
         UnsafeCheckpointError: the file pickles other Python objects (they are named).
         CheckpointError: the path is not a regular file (a folder, FIFO or device, refused
-            before opening), the file is not a readable PyTorch checkpoint, declares more
-            data than it holds, exceeds the size limit or nests its data too deeply; the
-            message names the file.
+            before opening), is a web page (a download that saved the link's page), is not a
+            readable PyTorch checkpoint, declares more data than it holds, exceeds the size
+            limit or nests its data too deeply; the message names the file.
     """
     path = Path(path)
     try:
@@ -88,6 +88,12 @@ def read_file(path: str | os.PathLike[str]) -> Any:
         raise
     except ValueError as error:
         raise CheckpointError(str(error)) from None
+    if _is_web_page(path):
+        raise CheckpointError(
+            f"{path} is a web page (HTML), not a checkpoint: a download link saved its page "
+            "instead of the file (Google Drive answers curl and wget with a confirmation page "
+            "for large files); download the file in a browser"
+        )
     try:
         scan = scan_checkpoint(path)
     except limits.LimitError as error:
@@ -114,6 +120,13 @@ def read_file(path: str | os.PathLike[str]) -> Any:
     except NestingError as error:
         raise CheckpointError(str(error)) from None
     return loaded
+
+
+def _is_web_page(path: Path) -> bool:
+    """Whether the file starts like an HTML document (after blanks and a byte-order mark)."""
+    with path.open("rb") as stream:
+        head = stream.read(512).lstrip(b"\xef\xbb\xbf \t\r\n").lower()
+    return head.startswith((b"<!doctype html", b"<html"))
 
 
 def _unsafe(names: list[str]) -> list[str]:
@@ -277,7 +290,7 @@ def checkpoint_contents(
             weights, _ = convert_state_dict(official_weights(checkpoint))
         except ConversionError as error:
             raise CheckpointError(f"{source}: {error}") from None
-        config = taptrv1() if official_version(weights) == 1 else taptrv2()
+        config = official_config(weights)
     else:
         raise CheckpointError(
             f"{source} is neither a taptr checkpoint (no 'format': 'taptr' entry) nor an "

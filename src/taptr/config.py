@@ -2,8 +2,10 @@
 
 The builder (`taptr.model.build.build_model`) is the only reader of these objects; the
 modules themselves take plain typed arguments. `taptrv2` is the paper's model exactly as
-the authors' released code builds it (40,040,803 parameters); `tiny` keeps the same
-architecture with small widths and a light backbone so that tests run in seconds.
+the authors' released code builds it (40,040,803 parameters); `taptrv3` and `taptrv3_r50`
+are the two released TAPTRv3 models (24,385,932 and 37,411,212 parameters); `tiny` and
+`tiny_v3` keep the architectures with small widths and a light backbone so that tests
+run in seconds.
 """
 
 from __future__ import annotations
@@ -12,11 +14,15 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
-BackboneKind = Literal["resnet50", "convnet"]
+BackboneKind = Literal["resnet50", "resnet18", "convnet"]
 CrossAttentionKind = Literal["key_aware", "standard"]
 ResizeKind = Literal["lanczos", "bilinear"]
+SupportKind = Literal["random", "local_and_grid", "grid"]
 
 RESNET50_CHANNELS = (256, 512, 1024, 2048)
+RESNET18_CHANNELS = (64, 128, 256, 512)
+RESNET_CHANNELS = {"resnet50": RESNET50_CHANNELS, "resnet18": RESNET18_CHANNELS}
+SUPPORT_KINDS = ("random", "local_and_grid", "grid")
 
 MAX_WIDTH = 4096
 """Largest channel count (d_model, backbone widths); the paper uses 256 and 2048."""
@@ -29,11 +35,13 @@ INT_RANGES: dict[str, tuple[int, int]] = {
     "decoder_layers": (0, 32),  # at least one: checked below with its own message
     "encoder_points": (1, 64),
     "decoder_points": (1, 64),
-    "version": (1, 2),
+    "version": (1, 3),
     "window_size": (1, 64),
     "window_stride": (1, 64),
     "long_video_frames": (1, 1_000_000),
     "context_points": (0, 10_000),
+    "context_patch": (1, 9),
+    "history_frames": (0, 1_000_000),
 }
 """Documented range [low, high] of every integer field of `ModelConfig`.
 
@@ -44,6 +52,7 @@ file cannot ask for a multi-gigabyte model; every preset lies well inside them.
 FLOAT_RANGES: dict[str, tuple[float, float]] = {
     "sine_temperature": (1e-6, 1e6),
     "window_dropout": (0.0, 0.999),
+    "visibility_threshold": (1e-6, 1 - 1e-6),
 }
 """Documented range [low, high] of every float field of `ModelConfig`."""
 
@@ -54,6 +63,8 @@ BOOL_FIELDS = (
     "temporal_attention",
     "point_attention",
     "memory_efficient",
+    "context_attention",
+    "visibility_weights",
 )
 
 INPUT_SIZE_RANGE = (16, 4096)
@@ -107,30 +118,34 @@ class BackboneConfig:
     """Feature extractor returning four maps at strides 4, 8, 16 and 32.
 
     Attributes:
-        kind: ``"resnet50"`` (torchvision ResNet-50 with frozen batch norm, the paper) or
+        kind: ``"resnet50"`` (torchvision ResNet-50 with frozen batch norm, TAPTRv2 and the
+            larger TAPTRv3), ``"resnet18"`` (ResNet-18, the smaller TAPTRv3) or
             ``"convnet"`` (a small stack of strided convolutions with group norm, for tests
             and CPU-sized models).
-        channels: output channels of the four levels. Fixed to (256, 512, 1024, 2048) for
-            ``resnet50``; free for ``convnet``.
+        channels: output channels of the four levels. Fixed for the ResNets
+            ((256, 512, 1024, 2048) and (64, 128, 256, 512)); free for ``convnet``.
     """
 
     kind: BackboneKind = "resnet50"
     channels: tuple[int, int, int, int] = RESNET50_CHANNELS
 
     def __post_init__(self) -> None:
-        if self.kind not in ("resnet50", "convnet"):
-            raise ValueError(f"unknown backbone kind {self.kind!r}; use 'resnet50' or 'convnet'")
+        if self.kind not in ("resnet50", "resnet18", "convnet"):
+            raise ValueError(
+                f"unknown backbone kind {self.kind!r}; use 'resnet50', 'resnet18' or 'convnet'"
+            )
         if not isinstance(self.channels, (tuple, list)) or len(self.channels) != 4:
             raise ValueError(f"backbone needs 4 level widths, got {self.channels!r:.60}")
         for width in self.channels:
             _check_int("backbone.channels", width, 1, MAX_WIDTH)
-        if self.kind == "resnet50" and tuple(self.channels) != RESNET50_CHANNELS:
-            raise ValueError(f"resnet50 has fixed widths {RESNET50_CHANNELS}, got {self.channels}")
+        fixed = RESNET_CHANNELS.get(self.kind)
+        if fixed is not None and tuple(self.channels) != fixed:
+            raise ValueError(f"{self.kind} has fixed widths {fixed}, got {self.channels}")
 
 
 @dataclass(frozen=True)
 class ModelConfig:
-    """Hyperparameters of the TAPTRv2 model (defaults are the paper's).
+    """Hyperparameters of a TAPTR model (defaults are TAPTRv2's, the paper's).
 
     Attributes:
         backbone: the feature extractor.
@@ -153,11 +168,15 @@ class ModelConfig:
             heads), Table 3 ablation.
         version: decoder generation. 2: cross-attention first in each layer, the content
             updater from layer 1 on. 1 (TAPTR): temporal attention, point attention, then
-            cross-attention in each layer, the content updater at every layer.
+            cross-attention in each layer, the content updater at every layer. 3
+            (TAPTRv3): each frame decoded once, starting from the point's initial content;
+            long-temporal attention over the point's past frames first in each layer, then
+            cross-attention, point attention and the FFN (`taptr.model.v3`).
         cost_volume: TAPTR v1's correlation of each point with its frame, sampled around the
             point and fused into the content at every layer (version 1 only).
         temporal_attention: attention across each point's frames in a window (TAPTR v1
-            Table 1 ablation when off).
+            Table 1 ablation when off); in version 3 the long-temporal attention over the
+            point's past frames, which it always has.
         point_attention: attention among the points of each frame (Table 1 ablation).
         memory_efficient: TAPTR v1's memory-efficient mode: every point's initial content
             is sampled from frame min(start, 7), which changes outputs when a point starts
@@ -175,6 +194,23 @@ class ModelConfig:
             predictor adds seeded context points to the user's queries up to this count
             (TAPTRv2-SPEC §6: points attend to each other in every decoder layer, so a
             handful of points alone is out of the training distribution); 0 adds none.
+            Read with ``support_points="random"`` only.
+        support_points: how the predictor surrounds the user's points (`taptr.api.context`):
+            ``"random"`` pads to ``context_points`` seeded random points (TAPTRv2's
+            evaluation and demo); ``"local_and_grid"`` adds 63 static points around each
+            query and a 6 × 6 grid (TAPTRv3's evaluation); ``"grid"`` the grid only.
+        context_attention: TAPTRv3's context-aware cross-attention: each sampling location
+            is scored by comparing the 3 × 3 patch of keys around it with the point's
+            initial 3 × 3 patch (version 3 only; off = the v2 key-aware dot product).
+        context_patch: side K of those square patches, one feature pixel apart (odd).
+        visibility_weights: TAPTRv3's long-temporal attention weighs each past frame by
+            how visible the point was there (version 3 only; off = a plain mask of the
+            frames since the point's start).
+        history_frames: the most frames the long-temporal attention holds per point, the
+            current one included, oldest dropped first (the official
+            ``streaming_limited_size_of_placeholder``); 0 holds the whole clip (version 3).
+        visibility_threshold: a point is reported visible where sigmoid(visibility logit)
+            exceeds this (0.5 for TAPTRv2, 0.45 in TAPTRv3's evaluation).
     """
 
     backbone: BackboneConfig = field(default_factory=BackboneConfig)
@@ -201,6 +237,12 @@ class ModelConfig:
     input_size: tuple[int, int] = (512, 512)
     resize: ResizeKind = "lanczos"
     context_points: int = 800
+    support_points: SupportKind = "random"
+    context_attention: bool = False
+    context_patch: int = 3
+    visibility_weights: bool = False
+    history_frames: int = 0
+    visibility_threshold: float = 0.5
 
     def __post_init__(self) -> None:
         _check_fields(self, INT_RANGES, FLOAT_RANGES, BOOL_FIELDS)
@@ -215,12 +257,15 @@ class ModelConfig:
             raise ValueError(f"unknown cross_attention {self.cross_attention!r}")
         if self.disentangler and not self.position_update:
             raise ValueError("disentangler=True needs position_update=True")
-        if self.version not in (1, 2):
-            raise ValueError(f"version must be 1 (TAPTR) or 2 (TAPTRv2), got {self.version}")
+        if self.version not in (1, 2, 3):
+            raise ValueError(
+                f"version must be 1 (TAPTR), 2 (TAPTRv2) or 3 (TAPTRv3), got {self.version}"
+            )
         if self.version == 1 and (self.position_update or self.cross_attention != "standard"):
             raise ValueError("version 1 uses standard cross-attention and no position update")
-        if self.version == 2 and (self.cost_volume or self.memory_efficient):
+        if self.version != 1 and (self.cost_volume or self.memory_efficient):
             raise ValueError("cost_volume and memory_efficient exist in version 1 (TAPTR) only")
+        self._check_v3()
         if not 1 <= self.window_stride <= self.window_size:
             raise ValueError("need 1 <= window_stride <= window_size")
         if self.decoder_layers < 1 or self.encoder_layers < 0:
@@ -231,6 +276,31 @@ class ModelConfig:
             raise ValueError(
                 f"context_points must be a whole number >= 0, got {self.context_points}"
             )
+        if self.support_points not in SUPPORT_KINDS:
+            raise ValueError(
+                f"unknown support_points {self.support_points!r:.40}; use one of "
+                + ", ".join(SUPPORT_KINDS)
+            )
+
+    def _check_v3(self) -> None:
+        """TAPTRv3's fields: set only in version 3, and what version 3 requires."""
+        if self.version != 3:
+            if self.context_attention or self.visibility_weights or self.history_frames:
+                raise ValueError(
+                    "context_attention, visibility_weights and history_frames exist in "
+                    "version 3 (TAPTRv3) only"
+                )
+            return
+        if (self.window_size, self.window_stride) != (1, 1):
+            raise ValueError("version 3 decodes frame by frame: window_size = window_stride = 1")
+        if self.cross_attention != "key_aware" or not self.position_update:
+            raise ValueError("version 3 uses key-aware cross-attention and the position update")
+        if not self.temporal_attention:
+            raise ValueError("version 3 always has its long-temporal attention")
+        if self.context_patch % 2 == 0:
+            raise ValueError(f"context_patch must be odd, got {self.context_patch}")
+        if self.history_frames == 1:
+            raise ValueError("history_frames must be 0 (the whole clip) or at least 2")
 
     @property
     def num_levels(self) -> int:
@@ -337,7 +407,62 @@ def small() -> ModelConfig:
     )
 
 
-PRESETS = {"taptrv2": taptrv2, "taptrv1": taptrv1, "tiny": tiny, "small": small}
+def taptrv3() -> ModelConfig:
+    """TAPTRv3 as released with ResNet-18 at 384 × 512 (H × W), the authors' default.
+
+    4 decoder layers of long-temporal attention, context-aware cross-attention with the
+    position update, point attention and FFN; each frame decoded once. The predictor feeds
+    it as the official evaluation does: support points around each query and a grid, and
+    visibility above 0.45.
+    """
+    return ModelConfig(
+        backbone=BackboneConfig(kind="resnet18", channels=RESNET18_CHANNELS),
+        decoder_layers=4,
+        version=3,
+        window_size=1,
+        window_stride=1,
+        window_dropout=0.0,
+        input_size=(384, 512),
+        resize="bilinear",
+        context_points=0,
+        support_points="local_and_grid",
+        context_attention=True,
+        visibility_weights=True,
+        visibility_threshold=0.45,
+    )
+
+
+def taptrv3_r50() -> ModelConfig:
+    """TAPTRv3 as released with ResNet-50 at 512 × 512."""
+    return taptrv3().replace(
+        backbone=BackboneConfig(kind="resnet50", channels=RESNET50_CHANNELS), input_size=(512, 512)
+    )
+
+
+def tiny_v3() -> ModelConfig:
+    """TAPTRv3's architecture with small widths and a light backbone, for fast tests."""
+    return taptrv3().replace(
+        backbone=BackboneConfig(kind="convnet", channels=(16, 24, 32, 48)),
+        d_model=32,
+        num_heads=4,
+        ffn_dim=64,
+        decoder_layers=2,
+        encoder_points=2,
+        decoder_points=2,
+        input_size=(48, 64),
+        support_points="grid",
+    )
+
+
+PRESETS = {
+    "taptrv2": taptrv2,
+    "taptrv1": taptrv1,
+    "taptrv3": taptrv3,
+    "taptrv3-r50": taptrv3_r50,
+    "tiny": tiny,
+    "tiny-v3": tiny_v3,
+    "small": small,
+}
 
 
 def get_config(name: str) -> ModelConfig:

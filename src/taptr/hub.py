@@ -8,8 +8,12 @@ this order:
    ``huggingface_hub``: the local Hub cache is used when it holds the file, offline mode
    (``HF_HUB_OFFLINE=1``) never touches the network, and a download is checked against a
    SHA-256 (the registry's when set, else the Hub's own for large files);
-3. the name of weights that ship inside the package (`BUNDLED`);
-4. a preset name: the architecture with freshly initialised, untrained weights (a warning
+3. the name of weights the authors host where no tool can fetch them reliably
+   (`MANUAL`: TAPTRv3's two checkpoints, on Google Drive): read from the weights folder
+   (`weights_dir`, ``TAPTR_WEIGHTS_DIR``), and when missing, one message with the link,
+   the licence and where to put the file; nothing is fetched and nothing waits;
+4. the name of weights that ship inside the package (`BUNDLED`);
+5. a preset name: the architecture with freshly initialised, untrained weights (a warning
    says so).
 
 **The default** (no name): the paper's weights, `DEFAULT_MODEL`, from the cache or
@@ -82,6 +86,49 @@ WEIGHTS = {
 }
 """Weights on the Hugging Face Hub: name → where the file is and what it holds."""
 
+
+
+@dataclass(frozen=True)
+class ManualWeights:
+    """Weights the authors host on Google Drive, which a user downloads in a browser.
+
+    Drive answers scripted downloads of large files (``curl``, ``wget``) with a
+    confirmation web page, so taptr fetches nothing: it reads the file from `weights_dir`
+    and, when it is missing, says where to get it and where to put it.
+
+    Attributes:
+        url: the authors' link to the file.
+        filename: the file's name, as the authors' evaluation script expects it.
+        preset: the architecture the file holds (a key of `taptr.config.PRESETS`).
+        title: the model's name in messages.
+        licence: the weights' licence.
+    """
+
+    url: str
+    filename: str
+    preset: str
+    title: str
+    licence: str
+
+
+MANUAL = {
+    "taptrv3-official": ManualWeights(
+        "https://drive.google.com/file/d/1frPX9R_nKDG8FmL-vH6l_2HsJfhvEjtg",
+        "TAPTRv3_resnet18_384x512.pth",
+        "taptrv3",
+        "TAPTRv3 (ResNet-18, 384 × 512)",
+        _IDEA_LICENCE,
+    ),
+    "taptrv3-r50-official": ManualWeights(
+        "https://drive.google.com/file/d/19iql2VTqGIeoyg_wt3JjpohszN5UE6s1",
+        "TAPTRv3_resnet50_512x512.pth",
+        "taptrv3-r50",
+        "TAPTRv3 (ResNet-50, 512 × 512)",
+        _IDEA_LICENCE,
+    ),
+}
+"""Weights downloaded by hand: name → where the authors host the file and what it holds."""
+
 BUNDLED = {"taptr-small-synthetic": ("taptr-small-synthetic.pth", "small")}
 """Weights inside the package: name → (file under ``taptr/weights``, preset it was trained as)."""
 
@@ -132,7 +179,37 @@ def bundled_path(name: str) -> Path | None:
 
 def known_names() -> list[str]:
     """Every name `resolve_model` accepts besides paths."""
-    return [*WEIGHTS, *BUNDLED, *PRESETS]
+    return [*WEIGHTS, *MANUAL, *BUNDLED, *PRESETS]
+
+
+def weights_dir() -> Path:
+    """Where hand-downloaded weights are looked for.
+
+    ``TAPTR_WEIGHTS_DIR`` (read now, not at import), else ``~/.cache/taptr/weights``.
+    """
+    folder = os.environ.get("TAPTR_WEIGHTS_DIR")
+    return Path(folder) if folder else Path.home() / ".cache" / "taptr" / "weights"
+
+
+def manual_path(name: str) -> Path:
+    """The file of hand-downloaded weights ``name`` in `weights_dir`.
+
+    Raises:
+        FileNotFoundError: it is not there; the message gives the link, the licence and
+            where to put the file (or the path to pass instead).
+    """
+    entry = MANUAL[name]
+    path = weights_dir() / entry.filename
+    if path.is_file():
+        return path
+    raise FileNotFoundError(
+        f"{name}: {entry.filename} is not in {path.parent}. The authors host {entry.title} on "
+        f"Google Drive ({entry.licence}): open {entry.url} in a browser and download it "
+        f"(curl and wget get Drive's confirmation page, not the file), then put it at {path} "
+        f"(or set TAPTR_WEIGHTS_DIR to its folder), or pass its path: --checkpoint "
+        f"/path/to/{entry.filename} on the command line, "
+        f'taptr.from_pretrained("/path/to/{entry.filename}") in Python'
+    )
 
 
 def hub_offline() -> bool:
@@ -301,14 +378,16 @@ def load_model(
     """Loads a model by path or name, in eval mode on the CPU, and says where it came from.
 
     Args:
-        name_or_path: a checkpoint file, a published weights name (`WEIGHTS`), a bundled
-            weights name, a preset name (untrained), or None for the default: the paper's
-            weights, else the bundled model with one warning (see the module docstring).
+        name_or_path: a checkpoint file, a published weights name (`WEIGHTS`), a
+            hand-downloaded weights name (`MANUAL`), a bundled weights name, a preset name
+            (untrained), or None for the default: the paper's weights, else the bundled
+            model with one warning (see the module docstring).
         cache_dir: Hugging Face cache folder for published weights (default: the Hub's).
 
     Raises:
-        FileNotFoundError: neither an existing file nor a known name (lists the names), or
-            named published weights that are neither cached nor downloadable.
+        FileNotFoundError: neither an existing file nor a known name (lists the names),
+            named published weights that are neither cached nor downloadable, or
+            hand-downloaded weights not in `weights_dir` (says where to get them).
         NotImplementedError: published weights of an architecture taptr does not have.
     """
     if name_or_path is None:
@@ -318,6 +397,8 @@ def load_model(
         return _from_file(name, name)
     if name in WEIGHTS:
         return _from_file(_published_path(name, cache_dir), name)
+    if name in MANUAL:
+        return _from_file(manual_path(name), name)
     if name in BUNDLED:
         return _bundled(name)
     if name in PRESETS:

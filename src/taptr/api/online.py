@@ -8,9 +8,11 @@ memory is bounded by the window, not the stream.
 A window is decoded once a frame after its last frame has arrived (so that a point added
 on the newest frame still joins it), and a frame's tracks are returned once no later
 window can change them: at most about one window (8 frames) behind the newest frame.
+TAPTRv3 decodes frame by frame: each frame is decoded, and returned, once the next one
+has arrived (`taptr.api.engines`).
 
-Context points (`taptr.api.context`) are drawn when the first window is decoded, from the
-points known then, and are never returned; points added later join them.
+Context or support points (`Predictor.with_support`) are drawn when the first window is
+decoded, from the points known then, and are never returned; points added later join them.
 
 The result equals the offline `Predictor.track` on the same frames and queries, given
 that every query is added before a window containing its query frame is decoded (always
@@ -29,21 +31,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from taptr.api.context import with_context
+from taptr.api.engines import FrameStream, StreamEngine, engine_for
 from taptr.api.inputs import query_tensor, video_tensor
 from taptr.api.predictor import Predictor
 from taptr.api.queries import model_queries, on_own_frames
 from taptr.api.stream_frames import StreamFrames
+from taptr.api.support import LOCAL_OFFSETS, local_points
 from taptr.geometry import normalized_to_pixels
-from taptr.model.sliding_window import (
-    QuerySet,
-    TrackerState,
-    add_points,
-    decode_window,
-    keep_points,
-    start_state,
-)
-from taptr.windows import window_ranges
+from taptr.model.sliding_window import QuerySet, TrackerState
 
 
 class FrameCountError(ValueError):
@@ -55,7 +50,7 @@ class StreamState:
     """Everything an online tracker knows about one stream.
 
     Attributes:
-        tracker: the window driver's state (points, trajectories, next window).
+        tracker: the driver's state (points, trajectories, next window or frame).
         num_frames: declared stream length, or None.
         frame_size: (H, W) of the input frames, set by the first frames or by `start`.
         num_seen: frames received so far.
@@ -68,9 +63,13 @@ class StreamState:
         next_id: identifier of the next point added.
         is_context: (N_t,) bool over the tracker's points: True for context points.
         context_added: whether the context points have been drawn.
+        support: the support scheme chosen then (`Predictor.support_scheme`); with
+            ``"local_and_grid"``, points added later bring their own local points.
+        support_of: (N_t,) int64 over the tracker's points: the identifier of the user
+            point a local support point surrounds (it leaves with it), else −1.
     """
 
-    tracker: TrackerState
+    tracker: TrackerState | FrameStream
     num_frames: int | None
     frame_size: tuple[int, int] | None
     encoded: StreamFrames
@@ -82,6 +81,8 @@ class StreamState:
     next_id: int = 0
     is_context: Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.bool))
     context_added: bool = False
+    support: str | None = None
+    support_of: Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.long))
 
 
 @dataclass
@@ -109,6 +110,7 @@ class OnlineTracker:
     def __init__(self, predictor: Predictor) -> None:
         self.predictor = predictor
         self.model = predictor.model
+        self.engine: StreamEngine = engine_for(predictor.model, predictor.history_frames)
 
     def start(
         self, num_frames: int | None = None, frame_size: tuple[int, int] | None = None
@@ -121,7 +123,7 @@ class OnlineTracker:
         """
         device, dtype = self.predictor.device, self.predictor.dtype
         empty = model_queries(torch.zeros(0, 3), 1, 1, device, dtype)  # no points: any size
-        tracker = start_state(self.model, empty, num_frames, dtype)
+        tracker = self.engine.start(empty, num_frames, dtype)
         return StreamState(tracker, num_frames, frame_size, StreamFrames(self.model))
 
     def add_queries(self, state: StreamState, queries: np.ndarray | Tensor) -> list[int]:
@@ -140,12 +142,16 @@ class OnlineTracker:
         if bool((new[:, 0] <= state.last_decoded).any()):
             raise ValueError(f"query frames must come after frame {state.last_decoded}")
         points = model_queries(new, height, width, self.predictor.device, self.predictor.dtype)
-        add_points(self.model, state.tracker, points)
+        self.engine.add_points(state.tracker, points)
         ids = list(range(state.next_id, state.next_id + new.shape[0]))
         state.next_id += new.shape[0]
         state.point_ids += ids
         state.queries = torch.cat((state.queries, new))
         state.is_context = torch.cat((state.is_context, torch.zeros(len(ids), dtype=torch.bool)))
+        state.support_of = torch.cat((state.support_of, torch.full((len(ids),), -1)))
+        if state.support == "local_and_grid":  # the support of points added later
+            parents = torch.tensor(ids).repeat_interleave(len(LOCAL_OFFSETS))
+            self._add_support_points(state, local_points(points), parents)
         return ids
 
     def remove_queries(self, state: StreamState, ids: list[int]) -> None:
@@ -154,10 +160,12 @@ class OnlineTracker:
         if unknown:
             raise ValueError(f"unknown point ids: {unknown}")
         keep = torch.tensor([pid not in set(ids) for pid in state.point_ids], dtype=torch.bool)
-        keep_tracked = state.is_context.clone()
-        keep_tracked[~state.is_context] = keep  # context points stay
-        keep_points(state.tracker, keep_tracked.to(self.predictor.device))
+        # context and grid points stay; local support points leave with their point
+        keep_tracked = state.is_context & ~torch.isin(state.support_of, torch.tensor(ids))
+        keep_tracked[~state.is_context] = keep
+        self.engine.keep_points(state.tracker, keep_tracked.to(self.predictor.device))
         state.is_context = state.is_context[keep_tracked]
+        state.support_of = state.support_of[keep_tracked]
         state.queries = state.queries[keep]
         state.point_ids = [pid for pid in state.point_ids if pid not in set(ids)]
 
@@ -181,11 +189,12 @@ class OnlineTracker:
         state.encoded.add(state.num_seen, self.predictor.prepare(chunk))
         state.num_seen += chunk.shape[0]
         while True:
-            window = self._next_window(state)
-            if window is None or window[1] >= state.num_seen - 1:
+            span = self.engine.next_span(state.tracker, state.num_frames)
+            if span is None or span[1] >= state.num_seen - 1:
                 break
-            self._decode(state, *window)
-        return self._emit(state, self._final_bound(state))
+            self._decode(state, *span)
+        bound = self.engine.final_bound(state.tracker, state.num_seen, state.num_frames)
+        return self._emit(state, bound)
 
     @torch.no_grad()
     def finish(self, state: StreamState) -> StreamUpdate:
@@ -196,8 +205,7 @@ class OnlineTracker:
             raise FrameCountError(
                 f"the stream ended after {state.num_seen} of {state.num_frames} declared frames"
             )
-        ranges = window_ranges(state.num_seen, self.model.window_size, self.model.window_stride)
-        for first, last in ranges[state.tracker.next_window :]:
+        for first, last in self.engine.remaining(state.tracker, state.num_seen):
             self._decode(state, first, last)
         return self._emit(state, state.num_seen)
 
@@ -206,55 +214,46 @@ class OnlineTracker:
             return video_tensor(frames[None] if frames.ndim == 3 else frames)[0]
         return video_tensor(frames[None])[0]
 
-    def _next_window(self, state: StreamState) -> tuple[int, int] | None:
-        index, size, stride = (
-            state.tracker.next_window,
-            self.model.window_size,
-            self.model.window_stride,
-        )
-        if state.num_frames is None:
-            return index * stride, index * stride + size - 1
-        ranges = window_ranges(state.num_frames, size, stride)
-        return ranges[index] if index < len(ranges) else None
-
-    def _final_bound(self, state: StreamState) -> int:
-        """Frames before this index can no longer change."""
-        if state.tracker.next_window == 0:
-            return 0
-        upcoming = self._next_window(state)
-        if state.num_frames is not None:
-            return state.num_frames if upcoming is None else upcoming[0]
-        # an undeclared stream may still end with a window shifted back to [T - size, T - 1]
-        assert upcoming is not None
-        return max(0, min(upcoming[0], state.num_seen - self.model.window_size))
-
     def _add_context(self, state: StreamState) -> None:
         """Draws the context points from the points known now (before the first window)."""
         state.context_added = True
-        known = state.tracker.queries
-        padded = with_context(
-            known, self.predictor.context_points, self.predictor.input_size, state.num_frames
-        )
+        known = self.engine.queries(state.tracker)
+        state.support = self.predictor.support_scheme(known.start_frames.shape[1])
+        padded = self.predictor.with_support(known, state.num_frames, state.support)
         count = padded.start_frames.shape[1] - known.start_frames.shape[1]
-        if count:
-            add_points(self.model, state.tracker, QuerySet(*(q[:, -count:] for q in padded)))
-            state.is_context = torch.cat((state.is_context, torch.ones(count, dtype=torch.bool)))
+        if not count:
+            return
+        parents = torch.full((count,), -1)
+        if state.support == "local_and_grid":  # 63 local points per known point, in order
+            known_ids = torch.tensor(state.point_ids, dtype=torch.long)
+            local = known_ids.repeat_interleave(len(LOCAL_OFFSETS))
+            parents[: len(local)] = local
+        self._add_support_points(state, QuerySet(*(q[:, -count:] for q in padded)), parents)
+
+    def _add_support_points(self, state: StreamState, points: QuerySet, parents: Tensor) -> None:
+        """Adds context or support points, never returned.
+
+        ``parents``: (K,) the user point each surrounds, or −1.
+        """
+        self.engine.add_points(state.tracker, points)
+        count = points.start_frames.shape[1]
+        state.is_context = torch.cat((state.is_context, torch.ones(count, dtype=torch.bool)))
+        state.support_of = torch.cat((state.support_of, parents))
 
     def _decode(self, state: StreamState, first: int, last: int) -> None:
         if not state.context_added:
             self._add_context(state)
         with self.predictor.precision():
-            decode_window(self.model, state.tracker, first, last, state.encoded)
+            self.engine.decode(state.tracker, (first, last), state.encoded)
         state.last_decoded = last
 
     def _emit(self, state: StreamState, bound: int) -> StreamUpdate:
         first = state.emitted
         height, width = state.frame_size or (1, 1)
-        tracker = state.tracker
         if bound > first:
-            users = ~state.is_context.to(tracker.queries.positions.device)
-            positions = tracker.positions[-1].read(first, bound - 1)[0, :, users, :2].sigmoid()
-            logits = tracker.visibility[-1].read(first, bound - 1)[0, :, users, 1]
+            positions, logits = self.engine.read(state.tracker, first, bound)
+            users = ~state.is_context.to(positions.device)
+            positions, logits = positions[:, users], logits[:, users]
         else:
             positions = torch.zeros(0, len(state.point_ids), 2)
             logits = torch.zeros(0, len(state.point_ids))
@@ -272,11 +271,4 @@ class OnlineTracker:
 
     def _release(self, state: StreamState, before: int) -> None:
         state.encoded.release(before)
-        tracker = state.tracker
-        for trajectory in [
-            tracker.content,
-            *tracker.positions,
-            *tracker.visibility,
-            *tracker.updated_positions,
-        ]:
-            trajectory.release(before)
+        self.engine.release(state.tracker, before)

@@ -28,18 +28,27 @@ from taptr.api.context import with_context
 from taptr.api.inputs import grid_queries, query_tensor, video_tensor
 from taptr.api.queries import model_queries, on_own_frames
 from taptr.api.resize import resize_frames
+from taptr.api.support import with_support
+from taptr.config import SUPPORT_KINDS
 from taptr.geometry import normalized_to_pixels
 from taptr.memory_estimate import check_memory, estimate_tracking
+from taptr.model.drivers import run_tracker, step_count
 from taptr.model.frames import EncodedFrames
 from taptr.model.kernel_choice import choose_kernel
-from taptr.model.sliding_window import run_windows
+from taptr.model.sliding_window import QuerySet
 from taptr.model.taptr import TAPTR, normalize_frames
+from taptr.model.v3.taptr import TAPTRv3
 from taptr.types import AUTOCAST_TYPES, TrackingResult
-from taptr.windows import window_ranges
 
 logger = logging.getLogger(__name__)
 
 VideoInput = np.ndarray | Tensor | str | os.PathLike
+
+LOCAL_SUPPORT_BUDGET = 2048
+"""With the default support, TAPTRv3 gets 63 local points per query only while that keeps
+it at or below this many points (32 queries); more queries get the 36 grid points alone,
+and support each other (docs/BENCHMARKS.md measures what it costs)."""
+SUPPORT_CHOICES = (*SUPPORT_KINDS, "none")
 
 
 def autocast_type(name: str) -> torch.dtype | None:
@@ -59,7 +68,9 @@ class Predictor:
     Args:
         model: the network (moved to ``device`` and put in eval mode).
         input_size: (height, width) frames are resized to; default: the model config's.
-        visibility_threshold: a point is visible where sigmoid(visibility logit) exceeds it.
+        visibility_threshold: a point is visible where sigmoid(visibility logit) exceeds it;
+            default: the model config's (0.5 for TAPTRv2, 0.45 for TAPTRv3, as their
+            official evaluations decide).
         device: where to run; default: CUDA if available, else CPU.
         dtype: floating type of the model's weights and inputs (float32; float64 for
             exact comparisons).
@@ -76,6 +87,16 @@ class Predictor:
             many points before the model runs (`taptr.api.context`); they are never
             returned. Default: the model config's (800 for the paper's weights, the points
             per training clip for models trained by taptr); 0 turns it off.
+        support_points: how the user's points are surrounded before the model runs, never
+            returned: ``"random"`` (``context_points`` seeded points, TAPTRv2's recipe),
+            ``"local_and_grid"`` (63 points around each query and a 6 × 6 grid, TAPTRv3's
+            evaluation), ``"grid"`` (the grid alone) or ``"none"``. Default: the model
+            config's, except that TAPTRv3 falls back to ``"grid"`` when the local points
+            would take it past `LOCAL_SUPPORT_BUDGET` points (more than 32 queries).
+        history_frames: TAPTRv3: the most past frames its long-temporal attention holds
+            per point, the current one included (0: the whole video; memory grows by
+            C · 4 bytes per point and frame, 1 KiB for the released models). Default: the
+            model's (0).
         source: the checkpoint's name or path, for messages.
         notice: what to tell users about the model (the default model's fallback line).
     """
@@ -85,12 +106,14 @@ class Predictor:
         model: TAPTR,
         *,
         input_size: tuple[int, int] | None = None,
-        visibility_threshold: float = 0.5,
+        visibility_threshold: float | None = None,
         device: str | torch.device | None = None,
         dtype: torch.dtype = torch.float32,
         autocast: torch.dtype | None = None,
         kernel: str = "auto",
         context_points: int | None = None,
+        support_points: str | None = None,
+        history_frames: int | None = None,
         source: str | None = None,
         notice: str | None = None,
     ) -> None:
@@ -115,8 +138,25 @@ class Predictor:
         if context_points < 0:
             raise ValueError(f"context_points must be >= 0, got {context_points}")
         self.context_points = context_points
+        if support_points is not None and support_points not in SUPPORT_CHOICES:
+            choices = ", ".join(SUPPORT_CHOICES)
+            raise ValueError(f"support_points must be one of {choices}, got {support_points!r}")
+        self.support_points = support_points
+        if history_frames is not None:
+            if not isinstance(model, TAPTRv3):
+                raise ValueError("history_frames applies to TAPTRv3 models only")
+            if isinstance(history_frames, bool) or not isinstance(history_frames, int):
+                raise ValueError(f"history_frames must be a whole number, got {history_frames!r}")
+            if history_frames < 0 or history_frames == 1:
+                raise ValueError(
+                    "history_frames must be 0 (the whole video) or at least 2, "
+                    f"got {history_frames}"
+                )
+        self.history_frames = history_frames
         self.source = source
         self.notice = notice
+        if visibility_threshold is None:
+            visibility_threshold = config.visibility_threshold if config else 0.5
         if not 0 < visibility_threshold < 1:
             raise ValueError(f"visibility_threshold must lie in (0, 1), got {visibility_threshold}")
         self.visibility_threshold = visibility_threshold
@@ -185,11 +225,12 @@ class Predictor:
         assert queries is not None
         query = query_tensor(queries, batch, num_frames, height, width)
         self._check_memory(num_frames, query.shape[1], (height, width), backward)
-        windows = len(window_ranges(num_frames, self.model.window_size, self.model.window_stride))
+        steps = step_count(self.model, num_frames)
         # the reversed pass runs only for videos with a query after frame 0
         passes = sum(1 + (backward and needs_backward(query[b])) for b in range(batch))
-        total = windows * passes
-        with tqdm(total=total, desc="tracking", unit="window", disable=not progress) as bar:
+        total = steps * passes
+        unit = "frame" if isinstance(self.model, TAPTRv3) else "window"
+        with tqdm(total=total, desc="tracking", unit=unit, disable=not progress) as bar:
             results = [
                 self._track_one(frames[b], query[b], backward, bar.update) for b in range(batch)
             ]
@@ -234,6 +275,34 @@ class Predictor:
         chunk = resize_frames(frames, self.input_size, self.resize).to(self.device)
         return normalize_frames(chunk)[None].to(self.dtype)
 
+    def support_scheme(self, num_queries: int) -> str:
+        """The support actually used for ``num_queries`` user points (see the class)."""
+        config = self.model.config
+        if self.support_points is not None:
+            return self.support_points
+        scheme = config.support_points if config else "random"
+        local_points = num_queries * 64 + 36
+        if scheme == "local_and_grid" and local_points > LOCAL_SUPPORT_BUDGET + 36:
+            return "grid"
+        return scheme
+
+    def with_support(
+        self, queries: QuerySet, num_frames: int | None, scheme: str | None = None
+    ) -> QuerySet:
+        """The model's point set: the user's points, then their context or support points.
+
+        Args:
+            queries: the user's points (B, N, ·) in model units.
+            num_frames: the video's length, or None for a stream.
+            scheme: the support to add; default `support_scheme` of the N points.
+        """
+        scheme = scheme or self.support_scheme(queries.start_frames.shape[1])
+        if scheme == "none":
+            return queries
+        if scheme == "random":
+            return with_context(queries, self.context_points, self.input_size, num_frames)
+        return with_support(queries, scheme)
+
     def precision(self) -> contextlib.AbstractContextManager[object]:
         """The context every model call runs in: autocast when the predictor asks for it."""
         if self.autocast is None:
@@ -265,7 +334,7 @@ class Predictor:
         num_frames, _, height, width = frames.shape
         dtype = self.dtype
         query_set = model_queries(queries, height, width, self.device, dtype)
-        query_set = with_context(query_set, self.context_points, self.input_size, num_frames)
+        query_set = self.with_support(query_set, num_frames)
 
         def load(first: int, last: int) -> Tensor:
             if reverse:
@@ -273,8 +342,14 @@ class Predictor:
             return self.prepare(frames[first : last + 1])
 
         with self.precision():
-            output = run_windows(
-                self.model, query_set, num_frames, EncodedFrames(self.model, load), dtype, on_window
+            output = run_tracker(
+                self.model,
+                query_set,
+                num_frames,
+                EncodedFrames(self.model, load),
+                dtype,
+                on_window,
+                history_frames=self.history_frames,
             )
         real = queries.shape[0]  # context points come after the user's and are dropped
         positions = output.positions[0, :, :real].float()

@@ -53,7 +53,8 @@ class BenchConfig:
     """One benchmark case.
 
     Attributes:
-        preset: model preset (``taptrv2``, ``taptrv1``, ``small``, ``tiny``).
+        preset: model preset (``taptrv2``, ``taptrv3``, ``taptrv3-r50``, ``taptrv1``,
+            ``small``, ``tiny``).
         frames: video length T.
         points: query points N.
         size: (height, width) of the model input.
@@ -63,6 +64,7 @@ class BenchConfig:
         execution: ``reference`` or ``fast`` (`taptr.model.execution.EXECUTIONS`).
         flops: also count FLOPs (a second, slower pass).
         seed: seed of the weights, video and queries.
+        history_frames: TAPTRv3's history limit (None: the model's, the whole video).
     """
 
     preset: str = "taptrv2"
@@ -75,11 +77,16 @@ class BenchConfig:
     execution: str = "fast"
     flops: bool = False
     seed: int = 0
+    history_frames: int | None = None
 
 
 @dataclass
 class BenchResult:
-    """Measurements of one case (times in seconds, memory in bytes)."""
+    """Measurements of one case (times in seconds, memory in bytes).
+
+    ``extra["step_seconds"]`` holds the wall time of each window (TAPTRv2) or frame
+    (TAPTRv3) in order, encoding included where it happens then.
+    """
 
     config: dict[str, Any]
     seconds_per_frame: float
@@ -137,9 +144,16 @@ def _inputs(config: BenchConfig) -> tuple[torch.Tensor, Any]:
     return video, queries
 
 
-def _track(model: TAPTR, config: BenchConfig, video: torch.Tensor, queries: Any) -> Any:
+def _track(
+    model: TAPTR,
+    config: BenchConfig,
+    video: torch.Tensor,
+    queries: Any,
+    steps: list[float] | None = None,
+) -> Any:
+    from taptr.model.drivers import run_tracker
     from taptr.model.frames import EncodedFrames, PrecomputedFrames
-    from taptr.model.sliding_window import QuerySet, run_windows
+    from taptr.model.sliding_window import QuerySet
     from taptr.model.taptr import normalize_frames
 
     device = torch.device(config.device)
@@ -155,7 +169,24 @@ def _track(model: TAPTR, config: BenchConfig, video: torch.Tensor, queries: Any)
         frames = PrecomputedFrames(model.encode(load(0, config.frames - 1), chunk_size=24))
     else:
         frames = EncodedFrames(model, load)
-    return run_windows(model, queries, config.frames, frames, torch.float32)
+    marks = [time.perf_counter()]
+
+    def on_step() -> None:
+        if config.device.startswith("cuda"):
+            torch.cuda.synchronize()
+        marks.append(time.perf_counter())
+        if steps is not None:
+            steps.append(marks[-1] - marks[-2])
+
+    return run_tracker(
+        model,
+        queries,
+        config.frames,
+        frames,
+        torch.float32,
+        on_step,
+        history_frames=config.history_frames,
+    )
 
 
 def run_case(config: BenchConfig, positions_out: str | None = None) -> BenchResult:
@@ -169,9 +200,10 @@ def run_case(config: BenchConfig, positions_out: str | None = None) -> BenchResu
     autocast = torch.autocast("cuda", dtype=torch.bfloat16, enabled=config.dtype == "bfloat16")
     if config.device.startswith("cuda"):
         torch.cuda.reset_peak_memory_stats()
+    steps: list[float] = []
     with torch.no_grad(), autocast, _stage_timer(model, config.device) as stages:
         start = time.perf_counter()
-        output = _track(model, config, video, queries)
+        output = _track(model, config, video, queries, steps)
         if config.device.startswith("cuda"):
             torch.cuda.synchronize()
         elapsed = time.perf_counter() - start
@@ -193,7 +225,20 @@ def run_case(config: BenchConfig, positions_out: str | None = None) -> BenchResu
         peak_cuda=peak_cuda,
         parameters=sum(p.numel() for p in model.parameters()),
         flops=flops,
+        extra={"step_seconds": steps},
     )
+
+
+def seconds_per_frame_at(result: BenchResult, frame: int, span: int = 8) -> float | None:
+    """Mean wall time of the ``span`` frames up to ``frame`` (1-based) of a per-frame run.
+
+    None for a windowed model (its steps are windows) or a run shorter than ``frame``.
+    """
+    steps = result.extra.get("step_seconds") or []
+    if len(steps) != result.config["frames"] or frame > len(steps):
+        return None
+    window = steps[max(0, frame - span) : frame]
+    return float(np.mean(window))
 
 
 def _count_flops(model: TAPTR, config: BenchConfig, video: torch.Tensor, queries: Any) -> int:
@@ -280,11 +325,16 @@ def format_table(rows: list[BenchResult]) -> str:
     lines = [header]
     for row in rows:
         c = row.config
+        preset = (
+            c["preset"]
+            if c.get("history_frames") is None
+            else f"{c['preset']}/h{c['history_frames']}"
+        )
         stages = " ".join(f"{row.stage_seconds.get(s, 0.0) / c['frames']:8.3f}" for s in STAGES)
         gflops = f"{row.flops / c['frames'] / 1e9:11.1f}" if row.flops else f"{'-':>11}"
         size = f"{c['size'][0]}x{c['size'][1]}"
         lines.append(
-            f"{c['preset']:8} {c['execution']:9} {c['frames']:4d} {c['points']:6d} {size:>9} "
+            f"{preset:8} {c['execution']:9} {c['frames']:4d} {c['points']:6d} {size:>9} "
             f"{row.seconds_per_frame:8.3f} {stages} {row.peak_rss / 2**30:8.2f}G "
             f"{row.parameters:11,d} {gflops}"
         )

@@ -47,9 +47,19 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "--size",
         type=int,
         nargs=2,
-        default=[512, 512],
+        default=None,
         metavar=("H", "W"),
-        help="frame size the model sees (default 512 512)",
+        help="frame size the model sees (default: each preset's input size, 512 512 for "
+        "taptrv2, 384 512 for taptrv3)",
+    )
+    parser.add_argument(
+        "--history-frames",
+        type=int,
+        nargs="+",
+        default=[None],
+        metavar="N",
+        help="TAPTRv3 presets: one or more history limits (0: the whole video; default: "
+        "the model's)",
     )
     parser.add_argument(
         "--threads", type=int, default=2, help="CPU threads of each measured process (default 2)"
@@ -81,34 +91,53 @@ def run(args: argparse.Namespace) -> int:
         machine,
         peak_flops,
         run_isolated,
+        seconds_per_frame_at,
         write_json,
     )
+    from taptr.config import get_config
 
     check_bench_arguments(args)
     command = "taptr " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     rows, cases = [], []
-    for preset in args.preset:
-        for points in args.points:
-            config = BenchConfig(
-                preset=preset,
-                frames=args.frames,
-                points=points,
-                size=tuple(args.size),
-                threads=args.threads,
-                device=args.device,
-                dtype=args.dtype,
-                flops=args.flops,
-            )
-            if args.execution == "both":
-                case = compare(config)
-                rows += list(case["results"].values())
-                cases.append({"preset": preset, "points": points, **case})
-            else:
-                chosen = args.execution
-                result = run_isolated(BenchConfig(**{**config.__dict__, "execution": chosen}))
-                rows.append(result)
-                cases.append({"preset": preset, "points": points, "results": {chosen: result}})
+    cases_to_run = [
+        (preset, points, history)
+        for preset in args.preset
+        for points in args.points
+        # history limits are TAPTRv3's: the other presets run once
+        for history in (args.history_frames if get_config(preset).version == 3 else [None])
+    ]
+    for preset, points, history in cases_to_run:
+        model = get_config(preset)
+        height, width = args.size or model.input_size
+        config = BenchConfig(
+            preset=preset,
+            frames=args.frames,
+            points=points,
+            size=(height, width),
+            threads=args.threads,
+            device=args.device,
+            dtype=args.dtype,
+            flops=args.flops,
+            history_frames=history,
+        )
+        if args.execution == "both":
+            case = compare(config)
+            rows += list(case["results"].values())
+            cases.append({"preset": preset, "points": points, **case})
+        else:
+            chosen = args.execution
+            result = run_isolated(BenchConfig(**{**config.__dict__, "execution": chosen}))
+            rows.append(result)
+            cases.append({"preset": preset, "points": points, "results": {chosen: result}})
     print(format_table(rows))
+    for row in rows:
+        at_24, at_end = (seconds_per_frame_at(row, f) for f in (24, row.config["frames"]))
+        if at_24 is not None and at_end is not None and row.config["frames"] > 24:
+            print(
+                f"{row.config['preset']} {row.config['execution']} N={row.config['points']} "
+                f"history {row.config['history_frames']}: {at_24:.3f} s/frame at frame 24, "
+                f"{at_end:.3f} at frame {row.config['frames']}"
+            )
     for case in cases:
         agreement = case.get("agreement")
         if agreement:
@@ -141,9 +170,17 @@ def run(args: argparse.Namespace) -> int:
 def check_bench_arguments(args: argparse.Namespace) -> None:
     """Checks the options before the first measured process starts."""
     from taptr.api.inputs import check_num_points
+    from taptr.config import PRESETS
 
     check_device(args.device)
-    check_input_size(args.size, "--size", minimum=32)  # tiny presets are timed on small frames
+    if args.size is not None:
+        check_input_size(args.size, "--size", minimum=32)  # tiny presets: small frames
+    unknown = [preset for preset in args.preset if preset not in PRESETS]
+    if unknown:
+        raise ValueError(f"unknown preset {unknown[0]!r}; known: {', '.join(PRESETS)}")
+    for history in args.history_frames:
+        if history is not None and (history < 0 or history == 1):
+            raise ValueError("--history-frames must be 0 (the whole video) or at least 2")
     check_at_least(args.frames, 1, "--frames")
     check_at_least(args.threads, 1, "--threads")
     for points in args.points:

@@ -21,6 +21,9 @@ if TYPE_CHECKING:
 KERNEL_CHOICES = ("auto", "measure", "grid_sample", "gather")
 """``--kernel`` choices (`taptr.model.kernel_choice.CHOICES`; here so --help needs no torch)."""
 
+SUPPORT_CHOICES = ("auto", "random", "local_and_grid", "grid", "none")
+"""``--support`` choices (`taptr.api.predictor.SUPPORT_CHOICES` and ``auto``)."""
+
 
 def add_model_arguments(parser: argparse.ArgumentParser, max_frames: int | None = None) -> None:
     """Options shared by the commands that run a model (``max_frames``: its default)."""
@@ -40,6 +43,24 @@ def add_model_arguments(parser: argparse.ArgumentParser, max_frames: int | None 
         help="pad the queries with seeded context points up to K points, as the official "
         "demo does; they are never written out; 0 turns it off (default: the model's, 800 "
         "for the paper's weights)",
+    )
+    parser.add_argument(
+        "--support",
+        choices=SUPPORT_CHOICES,
+        default="auto",
+        help="extra points the model sees around the queries, never written out: random "
+        "(up to --context-points, TAPTRv2's recipe), local_and_grid (63 around each query "
+        "and a 6x6 grid, TAPTRv3's evaluation), grid (the grid only), none; auto: the "
+        "model's own, with TAPTRv3 falling back to grid above 32 queries (default: auto)",
+    )
+    parser.add_argument(
+        "--history-frames",
+        type=int,
+        default=None,
+        metavar="N",
+        help="TAPTRv3: past frames each point's long-temporal attention holds, the current "
+        "one included, oldest dropped first (bounds memory on long videos; 0 holds the "
+        "whole video, about 1 KiB per point and frame) (default: the model's, 0)",
     )
     parser.add_argument(
         "--input-size",
@@ -86,6 +107,10 @@ def check_model_arguments(args: argparse.Namespace) -> None:
     check_input_size(args.input_size)
     if args.context_points is not None:
         check_at_least(args.context_points, 0, "--context-points")
+    if args.history_frames is not None:
+        check_at_least(args.history_frames, 0, "--history-frames")
+        if args.history_frames == 1:
+            raise ValueError("--history-frames must be 0 (the whole video) or at least 2")
     check_at_least(args.max_frames, 1, "--max-frames")
 
 
@@ -99,6 +124,8 @@ def load_predictor(args: argparse.Namespace) -> Predictor:
         device=args.device,
         input_size=size,
         context_points=args.context_points,
+        support_points=None if args.support == "auto" else args.support,
+        history_frames=args.history_frames,
         autocast=autocast_type(args.dtype),
         kernel=args.kernel,
     )

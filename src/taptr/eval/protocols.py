@@ -108,9 +108,12 @@ class EvalProtocol(Protocol):
         ...
 
     def predict(
-        self, video: np.ndarray, points: QueryPoints, query_mode: str
+        self, video: np.ndarray, points: QueryPoints, query_mode: str, index: int
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Tracks (T, N, 2) and visibility (T, N) of ``points`` in a (T, 256, 256, 3) video."""
+        """Tracks (T, N, 2) and visibility (T, N) of ``points`` in a (T, 256, 256, 3) video.
+
+        ``index`` is the video's position in the dataset.
+        """
         ...
 
 
@@ -131,7 +134,7 @@ class StandardProtocol:
         return Clip(video, tracks, sample.visible)
 
     def predict(
-        self, video: np.ndarray, points: QueryPoints, query_mode: str
+        self, video: np.ndarray, points: QueryPoints, query_mode: str, index: int = 0
     ) -> tuple[np.ndarray, np.ndarray]:
         """Runs the tracker, with a reversed pass for causal trackers in ``strided`` mode."""
         return run_tracker(self.tracker, video, points.queries, query_mode)
@@ -153,10 +156,10 @@ class OfficialProtocol:
         return Clip(video, (raster * (FRAME_SIZE - 1)).astype(np.float32), sample.visible)
 
     def predict(
-        self, video: np.ndarray, points: QueryPoints, query_mode: str
+        self, video: np.ndarray, points: QueryPoints, query_mode: str, index: int = 0
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Runs the official recipe (padding, 512 input, per-stride passes)."""
-        return self.model.predict(video, points, query_mode)
+        """Runs the official recipe (padding or support points, input size, passes)."""
+        return self.model.predict(video, points, query_mode, index)
 
 
 def evaluate_video(
@@ -181,7 +184,7 @@ def evaluate_video(
             np.zeros((result.num_frames, 0), bool),
         )
     else:
-        tracks, visible = protocol.predict(clip.video, points, query_mode)
+        tracks, visible = protocol.predict(clip.video, points, query_mode, index)
     result.metrics = tapvid_metrics(
         points.queries, points.tracks, points.visible, tracks, visible, query_mode
     )

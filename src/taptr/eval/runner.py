@@ -91,7 +91,8 @@ class EvalConfig:
         if self.protocol == "official" and (self.tracker != "taptr" or self.checkpoint is None):
             raise ValueError(
                 "the official protocol evaluates the TAPTR model only: use --tracker taptr "
-                "with --checkpoint (the released taptrv2.pth or a taptr checkpoint)"
+                "with --checkpoint (a released checkpoint, its name such as taptrv3-official, "
+                "or a taptr checkpoint)"
             )
         if self.tracker != "taptr" and self.checkpoint is not None:
             raise ValueError(f"--checkpoint is for the taptr tracker, not {self.tracker!r}")
@@ -104,11 +105,11 @@ class EvalConfig:
 def build_protocol(config: EvalConfig, device: str) -> EvalProtocol:
     """The protocol and tracker ``config`` names, with the model (if any) on ``device``."""
     if config.protocol == "official":
-        from taptr.checkpoint import load_checkpoint
         from taptr.eval.official_protocol import OfficialTAPTR
+        from taptr.hub import resolve_model
 
         assert config.checkpoint is not None  # checked by EvalConfig
-        return OfficialProtocol(OfficialTAPTR(load_checkpoint(config.checkpoint), device=device))
+        return OfficialProtocol(OfficialTAPTR(resolve_model(config.checkpoint), device=device))
     if config.tracker == "static":
         from taptr.eval.baselines import StaticTracker
 

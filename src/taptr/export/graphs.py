@@ -35,8 +35,24 @@ ONNX_OPSET = 18
 """The dynamo exporter's opset; GridSample needs 16 or later."""
 
 
+class NotExportableError(ValueError):
+    """The model's step does not fit the exported graphs; the message says why."""
+
+
 def prepare_for_export(model: TAPTR) -> TAPTR:
-    """A float32 CPU copy in eval mode with export-friendly kernels; ``model`` is untouched."""
+    """A float32 CPU copy in eval mode with export-friendly kernels; ``model`` is untouched.
+
+    Raises:
+        NotExportableError: for a TAPTRv3 model (see the message).
+    """
+    if model.window_updater is None:  # TAPTRv3
+        raise NotExportableError(
+            "TAPTRv3 cannot be exported: its per-frame step reads each point's history of "
+            "past frames, which grows with the video (or slides with --history-frames), "
+            "while the exported graphs carry TAPTRv2's fixed window state (content handed "
+            "from window to window); track TAPTRv3 in PyTorch (taptr track, Predictor) or "
+            "export a TAPTRv2 model"
+        )
     prepared = copy.deepcopy(model).float().cpu().eval()
     # the reference execution: the grouped point attention loops over frames with
     # data-dependent sizes (the masked formulation computes the same kept outputs in one

@@ -1,8 +1,9 @@
 """Per-frame feature extractors (four levels at strides 4, 8, 16, 32) and input projections.
 
-The paper's backbone is torchvision's ResNet-50 with frozen batch norm, so parameter names
-match both the official checkpoint (``backbone.0.body.*``) and torchvision's ImageNet
-weights. `ConvNet` is a light stand-in with group norm for tests and CPU-sized models.
+The papers' backbones are torchvision's ResNet-50 (TAPTRv2, TAPTRv3-R50) and ResNet-18
+(TAPTRv3-R18) with frozen batch norm, so parameter names match both the official
+checkpoints (``backbone.0.body.*``) and torchvision's ImageNet weights. `ConvNet` is a
+light stand-in with group norm for tests and CPU-sized models.
 
 At inference the ResNet can run its frozen batch norms in place (``in_place_norms``):
 torchvision's `FrozenBatchNorm2d` writes ``x * scale`` and then ``+ shift`` as two new
@@ -18,8 +19,8 @@ import math
 
 import torch
 from torch import Tensor, nn
-from torchvision.models import resnet50
-from torchvision.models.resnet import Bottleneck
+from torchvision.models import resnet18, resnet50
+from torchvision.models.resnet import BasicBlock, Bottleneck
 from torchvision.ops import FrozenBatchNorm2d
 
 from taptr.model.ops.row_blocks import tracks_grad
@@ -36,30 +37,42 @@ def frozen_norm_(norm: FrozenBatchNorm2d, x: Tensor) -> Tensor:
     return torch.addcmul(shift.view(1, -1, 1, 1), x, scale.view(1, -1, 1, 1), out=x)
 
 
-def _bottleneck_in_place(block: Bottleneck, x: Tensor) -> Tensor:
+def _block_in_place(block: Bottleneck | BasicBlock, x: Tensor) -> Tensor:
     """``block(x)`` with its norms, residual sum and ReLUs written over their inputs."""
     out = frozen_norm_(block.bn1, block.conv1(x)).relu_()
-    out = frozen_norm_(block.bn2, block.conv2(out)).relu_()
-    out = frozen_norm_(block.bn3, block.conv3(out))
+    if isinstance(block, Bottleneck):
+        out = frozen_norm_(block.bn2, block.conv2(out)).relu_()
+        out = frozen_norm_(block.bn3, block.conv3(out))
+    else:
+        out = frozen_norm_(block.bn2, block.conv2(out))
     if block.downsample is None:
         return out.add_(x).relu_()
     convolution, norm = block.downsample
     return out.add_(frozen_norm_(norm, convolution(x))).relu_()
 
 
-class ResNet50Body(nn.Module):
-    """ResNet-50 trunk without its classifier, returning the outputs of layer1..layer4.
+RESNETS = {"resnet50": resnet50, "resnet18": resnet18}
+
+
+def _out_channels(block: Bottleneck | BasicBlock) -> int:
+    last_norm = block.bn3 if isinstance(block, Bottleneck) else block.bn2
+    return int(last_norm.weight.shape[0])
+
+
+class ResNetBody(nn.Module):
+    """ResNet-50 or ResNet-18 trunk without its classifier: the outputs of layer1..layer4.
 
     Shape:
-        (N, 3, H, W) → [(N, 256, H/4, W/4), (N, 512, H/8, W/8), (N, 1024, H/16, W/16),
-        (N, 2048, H/32, W/32)].
+        (N, 3, H, W) → four maps (N, C_l, H/s, W/s) at strides s = 4, 8, 16, 32, with
+        C_l = (256, 512, 1024, 2048) for ResNet-50 and (64, 128, 256, 512) for ResNet-18.
     """
 
-    channels = (256, 512, 1024, 2048)
-
-    def __init__(self) -> None:
+    def __init__(self, kind: str = "resnet50") -> None:
+        """Creates the trunk, ``kind`` ``"resnet50"`` or ``"resnet18"``."""
         super().__init__()
-        trunk = resnet50(weights=None, norm_layer=FrozenBatchNorm2d)
+        trunk = RESNETS[kind](weights=None, norm_layer=FrozenBatchNorm2d)
+        stages = (trunk.layer1, trunk.layer2, trunk.layer3, trunk.layer4)
+        self.channels = tuple(_out_channels(stage[-1]) for stage in stages)
         self.conv1, self.bn1, self.relu, self.maxpool = (
             trunk.conv1,
             trunk.bn1,
@@ -87,7 +100,7 @@ class ResNet50Body(nn.Module):
             levels = []
             for stage in stages:
                 for block in stage:
-                    x = _bottleneck_in_place(block, x)
+                    x = _block_in_place(block, x)
                 levels.append(x)
             return levels
         x = self.maxpool(self.relu(self.bn1(self.conv1(images))))
@@ -139,13 +152,13 @@ class Backbone(nn.Module):
         (N, 3, H, W) ImageNet-normalised frames → list of L maps (N, C_l, H_l, W_l).
     """
 
-    def __init__(self, body: ResNet50Body | ConvNet) -> None:
+    def __init__(self, body: ResNetBody | ConvNet) -> None:
         super().__init__()
         self.body = body
         self.channels: tuple[int, ...] = tuple(body.channels)
 
     def forward(self, images: Tensor, in_place_norms: bool = False) -> list[Tensor]:
-        """Returns the multi-scale maps of each image (``in_place_norms``: `ResNet50Body`)."""
+        """Returns the multi-scale maps of each image (``in_place_norms``: `ResNetBody`)."""
         return self.body(images, in_place_norms)
 
 

@@ -19,7 +19,7 @@ from taptr.model.attention import (
     KeyAwareDeformableAttention,
     MultiheadAttention,
 )
-from taptr.model.backbone import Backbone, ConvNet, InputProjections, ResNet50Body
+from taptr.model.backbone import Backbone, ConvNet, InputProjections, ResNetBody
 from taptr.model.decoder import Decoder, DecoderLayer
 from taptr.model.encoder import Encoder, EncoderLayer
 from taptr.model.execution import DEFAULT_EXECUTION, Execution, get_execution
@@ -28,14 +28,22 @@ from taptr.model.position_update import PositionUpdate, refine_updated
 from taptr.model.query_init import QueryInitializer
 from taptr.model.taptr import TAPTR
 from taptr.model.v1 import CostVolume, V1Decoder, V1DecoderLayer, look_forward_twice
+from taptr.model.v3 import (
+    ContextAwareDeformableAttention,
+    ContextInitializer,
+    LongTemporalAttention,
+    TAPTRv3,
+    V3Decoder,
+    V3DecoderLayer,
+)
 
 COST_VOLUME_RADIUS = 3
 """TAPTR v1 samples 7×7 correlation windows."""
 
 
 def _build_backbone(config: ModelConfig) -> Backbone:
-    if config.backbone.kind == "resnet50":
-        return Backbone(ResNet50Body())
+    if config.backbone.kind in ("resnet50", "resnet18"):
+        return Backbone(ResNetBody(config.backbone.kind))
     return Backbone(ConvNet(config.backbone.channels))
 
 
@@ -74,8 +82,29 @@ def _build_decoder_layer(config: ModelConfig) -> DecoderLayer:
     return DecoderLayer(cross, update, temporal, points, c, config.ffn_dim, config.sine_temperature)
 
 
+def _build_v3_layer(config: ModelConfig) -> V3DecoderLayer:
+    c, m, lv, p = config.d_model, config.num_heads, config.num_levels, config.decoder_points
+    cross: ContextAwareDeformableAttention | KeyAwareDeformableAttention
+    if config.context_attention:
+        cross = ContextAwareDeformableAttention(c, m, lv, p, config.context_patch)
+    else:
+        cross = KeyAwareDeformableAttention(c, m, lv, p)
+    return V3DecoderLayer(
+        cross,
+        PositionUpdate(m * lv * p, c, config.disentangler),
+        MultiheadAttention(c, m) if config.point_attention else None,
+        LongTemporalAttention(c, m),
+        c,
+        config.ffn_dim,
+        config.sine_temperature,
+    )
+
+
 def _build_decoder(config: ModelConfig) -> Decoder:
     c = config.d_model
+    if config.version == 3:
+        layers_v3 = [_build_v3_layer(config) for _ in range(config.decoder_layers)]
+        return V3Decoder(layers_v3, c, config.sine_temperature, MLP(2 * c, c, c, 3))
     fuser = MLP(2 * c, c, c, 3) if config.position_update else None
     layers = [_build_decoder_layer(config) for _ in range(config.decoder_layers)]
     if config.version == 1:
@@ -146,6 +175,8 @@ def build_model(config: str | ModelConfig, execution: str | Execution = DEFAULT_
     encoder = _build_encoder(config)
     decoder = _build_decoder(config)
     _init_transformer(encoder, decoder)
+    if isinstance(decoder, V3Decoder):
+        return _assemble_v3(config, backbone, encoder, decoder, chosen)
     return TAPTR(
         backbone,
         InputProjections(backbone.channels, config.d_model),
@@ -160,4 +191,29 @@ def build_model(config: str | ModelConfig, execution: str | Execution = DEFAULT_
         memory_efficient=config.memory_efficient,
         config=config,
         execution=chosen,
+    )
+
+
+def _assemble_v3(
+    config: ModelConfig,
+    backbone: Backbone,
+    encoder: Encoder,
+    decoder: V3Decoder,
+    execution: Execution,
+) -> TAPTRv3:
+    query_init = (
+        ContextInitializer(config.d_model, config.num_levels, config.context_patch)
+        if config.context_attention
+        else QueryInitializer(config.d_model, config.num_levels)
+    )
+    return TAPTRv3(
+        backbone,
+        InputProjections(backbone.channels, config.d_model),
+        encoder,
+        query_init,
+        decoder,
+        visibility_weights=config.visibility_weights,
+        history_frames=config.history_frames,
+        config=config,
+        execution=execution,
     )

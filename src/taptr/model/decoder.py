@@ -18,6 +18,7 @@ here is the reference formulation and calls `taptr.model.ops` where the executio
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 from typing import NamedTuple
 
 import torch
@@ -153,19 +154,13 @@ class DecoderLayer(nn.Module):
             tables: where the key-aware cross-attention's key and value tables come from
                 (`Decoder.prepare_window`), or None to make them from ``memory``.
         """
+        extra = (tables,) if isinstance(self.cross_attention, KeyAwareDeformableAttention) else ()
         x, attended = self._cross(
-            content, query_pos, reference, memory, spatial_shapes, execution, tables
+            content, query_pos, reference, memory, spatial_shapes, execution, *extra
         )
-        displacement = None
-        if self.position_update is not None and self.position_embed is not None:
-            # the APU's steps 1-3 (taptr.model.position_update), then the re-embedding
-            delta = self.position_update(
-                attended.logits, attended.offsets, spatial_shapes, execution
-            )
-            moved = move_reference(reference, delta.view(*reference.shape[:-1], 2), update)
-            reference, displacement = moved
-            embedded = point_embedding(reference, x.shape[-1] // 2, self.temperature)
-            query_pos = self.position_embed(embedded, execution)
+        reference, displacement, query_pos = self._move(
+            x, attended, query_pos, reference, spatial_shapes, update, execution
+        )
         x = self._temporal(x, query_pos, masks.temporal, execution)
         x = self._points(x, query_pos, masks, execution)
         x = self.norm_ffn(x + self.ffn(x, execution))
@@ -179,24 +174,47 @@ class DecoderLayer(nn.Module):
         memory: Tensor,
         spatial_shapes: list[tuple[int, int]],
         execution: Execution,
-        tables: LayerTables | None = None,
+        *extra: object,
     ) -> tuple[Tensor, DeformableOutput]:
         """Post-normed cross-attention; returns (B, W_t, N, C) and the attention's output.
 
-        ``tables`` (key-aware attention only): see `DecoderLayer.forward`.
+        ``extra`` goes to the attention after the common arguments: the key-aware
+        attention's tables (see `DecoderLayer.forward`), TAPTRv3's point contexts.
         """
         batch, frames, points, channels = x.shape
         flat = x.reshape(batch * frames, points, channels)  # (B·W_t, N, C)
         query = flat + query_pos.reshape(batch * frames, points, channels)
         reference_xy = reference[..., :2].reshape(batch * frames, points, 2)
-        if isinstance(self.cross_attention, KeyAwareDeformableAttention):
-            attended = self.cross_attention(
-                query, reference_xy, memory, spatial_shapes, execution, tables
-            )
-        else:
-            attended = self.cross_attention(query, reference_xy, memory, spatial_shapes, execution)
+        attended = self.cross_attention(
+            query, reference_xy, memory, spatial_shapes, execution, *extra
+        )
         x = self.norm_cross(flat + attended.output).view(batch, frames, points, channels)
         return x, attended
+
+    def _move(
+        self,
+        x: Tensor,
+        attended: DeformableOutput,
+        query_pos: Tensor,
+        reference: Tensor,
+        spatial_shapes: list[tuple[int, int]],
+        update: Tensor,
+        execution: Execution,
+    ) -> tuple[Tensor, Tensor | None, Tensor]:
+        """The APU's steps 1-3 (`taptr.model.position_update`), then the re-embedding.
+
+        Returns the moved reference (B, W_t, N, 4), the masked displacement (B, W_t, N, 2)
+        and the new query position (B, W_t, N, C); without the APU, the inputs unchanged
+        and no displacement.
+        """
+        if self.position_update is None or self.position_embed is None:
+            return reference, None, query_pos
+        delta = self.position_update(attended.logits, attended.offsets, spatial_shapes, execution)
+        reference, displacement = move_reference(
+            reference, delta.view(*reference.shape[:-1], 2), update
+        )
+        embedded = point_embedding(reference, x.shape[-1] // 2, self.temperature)
+        return reference, displacement, self.position_embed(embedded, execution)
 
     def _temporal(
         self, x: Tensor, query_pos: Tensor, allowed: Tensor | None, execution: Execution
@@ -387,8 +405,43 @@ class Decoder(nn.Module):
                 (`taptr.model.frame_tables.FrameTables.start_window`), or None.
         """
         masks = attention_masks(tracking, execution.grouped_point_attention)
-        step = update.unsqueeze(-1).to(content.dtype)
         prepared = self.prepare_window(content, memory, spatial_shapes, execution, tables)
+        return self.run_layers(
+            content,
+            positions,
+            memory,
+            spatial_shapes,
+            masks,
+            update,
+            execution,
+            lambda index, reference: self.layer_extras(index, prepared, reference),
+        )
+
+    def run_layers(
+        self,
+        content: Tensor,
+        positions: Tensor,
+        memory: Tensor,
+        spatial_shapes: list[tuple[int, int]],
+        masks: AttentionMasks,
+        update: Tensor,
+        execution: Execution,
+        extras: Callable[[int, Tensor], tuple[object, ...]],
+    ) -> DecoderOutput:
+        """The layers in turn, each reading the heads' refined reference of the last.
+
+        Args:
+            content: (B, W_t, N, C) content at window entry.
+            positions: (B, W_t, N, 4) position logits at window entry.
+            memory: (B·W_t, S, C) encoder memory of the window's frames.
+            spatial_shapes: (H_l, W_l) per level.
+            masks: which entries may attend to each other.
+            update: (B, W_t, N) tracking entries after the start frame.
+            execution: how to run.
+            extras: (layer index, its input reference (B, W_t, N, 4) in [0, 1]) → the
+                layer's arguments after the common ones.
+        """
+        step = update.unsqueeze(-1).to(content.dtype)
         reference = positions.sigmoid()
         previous = reference
         out, features = content, content
@@ -396,9 +449,16 @@ class Decoder(nn.Module):
         for index, layer in enumerate(self.layers):
             query_pos = self.query_position(reference, execution)
             x = self.layer_input(index, out, content, execution)
-            extras = self.layer_extras(index, prepared, reference)
             result = layer(
-                x, query_pos, reference, memory, spatial_shapes, masks, update, execution, *extras
+                x,
+                query_pos,
+                reference,
+                memory,
+                spatial_shapes,
+                masks,
+                update,
+                execution,
+                *extras(index, reference),
             )
             out = result.content
             refined, visibility, features = self.read_heads(
@@ -407,7 +467,6 @@ class Decoder(nn.Module):
             outputs.add(refined, visibility)
             reference, previous = refined.reference, refined.previous
         return outputs.stacked(features)
-
 
 class LayerOutputs:
     """Collects the per-layer outputs of one window."""

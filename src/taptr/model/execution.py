@@ -14,7 +14,8 @@ to the encoder, the decoder and their attentions as an argument: no submodule ho
   (`taptr.model.ops.point_attention`), MLPs and encoder layers in cache-sized row blocks
   (`taptr.model.ops.row_blocks`), the decoder's key and value tables made once per frame
   and shared by the windows that overlap on it, frames channels-last into the backbone,
-  its batch norms in place, linear layers as oneDNN inner products on x86 CPUs.
+  its batch norms in place, linear layers as oneDNN inner products on x86 CPUs, and
+  TAPTRv3's long-temporal attention through per-head query products.
 - ``training``: what `taptr.train` builds. The ``grid_sample`` kernel, because its backward
   is about half the cost of the gather kernel's on CPU (``embedding_bag``'s backward sorts
   every index: 2.4 vs 4.0 s per small-preset step); grouped point attention; and row blocks
@@ -61,6 +62,10 @@ class Execution:
             CPUs in float32 (`taptr.model.ops.dense`): on the AMD EPYC host measured, twice
             the rate of the MKL product ``F.linear`` runs there. Elsewhere, and where
             autograd records, they run ``F.linear``. Same values up to rounding.
+        history_products: TAPTRv3's long-temporal attention scores and mixes the held
+            frames through per-head products of each query instead of projecting every
+            held frame (`taptr.model.ops.history_attention`): the same sums, about 30
+            times fewer products on long histories.
     """
 
     name: str
@@ -72,6 +77,7 @@ class Execution:
     channels_last: bool = False
     in_place_norms: bool = False
     onednn_linear: bool = False
+    history_products: bool = False
 
 
 EXECUTIONS: dict[str, Execution] = {
@@ -86,6 +92,7 @@ EXECUTIONS: dict[str, Execution] = {
         channels_last=True,
         in_place_norms=True,
         onednn_linear=True,
+        history_products=True,
     ),
     "training": Execution("training", "grid_sample", True, ROW_BLOCK),
 }

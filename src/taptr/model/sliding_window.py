@@ -30,7 +30,7 @@ from taptr.model.frame_tables import FrameTables
 from taptr.model.taptr import TAPTR, FrameFeatures
 from taptr.model.trajectory import QuerySet, TrackerState, TrackOutput, Trajectory, finish
 from taptr.model.trajectory import keep_points as keep_points  # part of the driver's API
-from taptr.model.v1.memory_efficient import initialise_in_first_window
+from taptr.model.v1.memory_efficient import first_window_content_frames
 from taptr.windows import content_padding_gap, window_ranges
 
 FrameSource = Callable[[int, int], FrameFeatures]
@@ -131,6 +131,11 @@ class ModelBackend:
     """
 
     def __init__(self, model: TAPTR) -> None:
+        if model.window_updater is None:
+            raise TypeError(
+                "TAPTRv3 decodes frame by frame: run it with taptr.model.v3.per_frame, not "
+                "the sliding-window driver"
+            )
         self.model = model
         self.window_size = model.window_size
         self.window_stride = model.window_stride
@@ -291,7 +296,11 @@ def decode_window(
     backend = as_backend(model)
     index = state.next_window
     state.next_window += 1
-    initialise_in_first_window(backend, state, index, first, last, frames_source)
+    content_frames = first_window_content_frames(
+        backend.memory_efficient, backend.training, index, last, state.queries.start_frames
+    )
+    if content_frames is not None:  # TAPTR v1's memory-efficient mode
+        initialise_points(backend, state, frames_source(first, last), first, content_frames)
     frames = torch.arange(first, last + 1, device=state.queries.start_frames.device)
     starts = state.queries.start_frames[:, None, :]  # (B, 1, N)
     tracking = frames[None, :, None] >= starts  # (B, W_t, N)

@@ -58,7 +58,7 @@ class TAPTR(nn.Module):
             `taptr.model.build.build_model` and changed only by `set_execution`.
         window_updater: updates the content handed from one window to the next from the
             point's initial content, its window-entry content and the last layer's head
-            features (`update_content`).
+            features (`update_content`); None in TAPTRv3, which hands no content over.
     """
 
     def __init__(
@@ -68,7 +68,7 @@ class TAPTR(nn.Module):
         encoder: Encoder,
         query_init: QueryInitializer,
         decoder: Decoder,
-        window_updater: MLP,
+        window_updater: MLP | None,
         *,
         window_size: int,
         window_stride: int,
@@ -208,6 +208,8 @@ class TAPTR(nn.Module):
         Returns:
             (B, W_t, N, C).
         """
+        if self.window_updater is None:
+            raise TypeError("this model hands no content between windows (TAPTRv3)")
         joined = torch.cat((initial, content, features), dim=-1)
         delta = self.window_updater(joined, self.execution)
         delta = delta * update.unsqueeze(-1).to(delta.dtype)

@@ -1,6 +1,8 @@
 """Converter from the authors' released checkpoints to taptr's module names.
 
-The official files (``taptrv2.pth``, ``taptrv1.pth``) are training checkpoints of a
+The official files (``taptrv2.pth``, ``taptrv1.pth``, TAPTRv3's
+``TAPTRv3_resnet18_384x512.pth`` and ``TAPTRv3_resnet50_512x512.pth``) are training
+checkpoints of a
 DINO-derived model: the weights used for inference are under ``ema_model`` with a
 ``module.`` prefix, the points are "boxes" and visibility is a "class". This module is the
 only place where those names appear. The map is explicit: every official key must match
@@ -15,6 +17,8 @@ import re
 from collections.abc import Mapping
 
 from torch import Tensor
+
+from taptr.config import ModelConfig, taptrv1, taptrv2, taptrv3, taptrv3_r50
 
 # (official pattern, our replacement), applied to keys without the "module." prefix.
 _DECODER_LAYER = r"transformer\.decoder\.layers\.(\d+)\."
@@ -46,7 +50,24 @@ RULES: tuple[tuple[str, str], ...] = (
         _DECODER_LAYER + r"cross_attn\.(\w+)\.(weight|bias)",
         r"decoder.layers.\1.cross_attention.\2.\3",
     ),
+    (
+        _DECODER_LAYER + r"cross_attn\.mlp_calulate_similarity\.0\.(weight|bias)",
+        r"decoder.layers.\1.cross_attention.similarity.layers.0.\2",
+    ),
+    (
+        _DECODER_LAYER + r"cross_attn\.mlp_calulate_similarity\.2\.(weight|bias)",
+        r"decoder.layers.\1.cross_attention.similarity.layers.1.\2",
+    ),
     (_DECODER_LAYER + r"norm1\.(weight|bias)", r"decoder.layers.\1.norm_cross.\2"),
+    (
+        _DECODER_LAYER + r"ltemp_self_attn\.(.+)",
+        r"decoder.layers.\1.long_temporal.attention.\2",
+    ),
+    (_DECODER_LAYER + r"norm_ltemp\.(weight|bias)", r"decoder.layers.\1.norm_long_temporal.\2"),
+    (
+        _DECODER_LAYER + r"lta_temporal_embedding\.freqs",
+        r"decoder.layers.\1.long_temporal.rotary.freqs",
+    ),
     (_DECODER_LAYER + r"temp_self_attn\.(.+)", r"decoder.layers.\1.temporal_attention.\2"),
     (_DECODER_LAYER + r"norm_temp\.(weight|bias)", r"decoder.layers.\1.norm_temporal.\2"),
     (_DECODER_LAYER + r"self_attn\.(.+)", r"decoder.layers.\1.point_attention.\2"),
@@ -203,8 +224,34 @@ def _preview(keys: list[str], limit: int = 8) -> str:
 
 
 def official_version(converted: Mapping[str, Tensor]) -> int:
-    """1 for TAPTR (it has the cost volume), 2 for TAPTRv2, from converted key names."""
-    return 1 if any(key.startswith("decoder.cost_volume.") for key in converted) else 2
+    """The TAPTR generation of a converted official state dict, from its key names.
+
+    1 for TAPTR (it has the cost volume), 3 for TAPTRv3 (the long-temporal attention),
+    else 2 (TAPTRv2).
+    """
+    if any(key.startswith("decoder.cost_volume.") for key in converted):
+        return 1
+    if any(".long_temporal." in key for key in converted):
+        return 3
+    return 2
+
+
+RESNET50_ONLY_KEY = "backbone.body.layer1.0.conv3.weight"
+"""A bottleneck's third convolution: in ResNet-50, not in ResNet-18."""
+
+
+def official_config(converted: Mapping[str, Tensor]) -> ModelConfig:
+    """The released model a converted official state dict belongs to, from its key names.
+
+    TAPTR v1, TAPTRv2, or TAPTRv3 with ResNet-50 (512 × 512) or ResNet-18 (384 × 512),
+    told apart by the backbone's keys.
+    """
+    version = official_version(converted)
+    if version == 1:
+        return taptrv1()
+    if version == 2:
+        return taptrv2()
+    return taptrv3_r50() if RESNET50_ONLY_KEY in converted else taptrv3()
 
 
 def looks_official(checkpoint: Mapping[str, object]) -> bool:

@@ -12,8 +12,9 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from taptr.model.drivers import run_tracker
 from taptr.model.frames import EncodedFrames
-from taptr.model.sliding_window import QuerySet, run_windows
+from taptr.model.sliding_window import QuerySet
 from taptr.model.taptr import TAPTR
 
 
@@ -48,8 +49,13 @@ def official_forward(
     query_frames: Tensor,
     query_xy: Tensor,
     query_labels: Tensor | None = None,
+    *,
+    history_frames: int | None = None,
 ) -> dict[str, Any]:
     """Runs the model exactly as the official code does at evaluation (no query padding).
+
+    TAPTR v1 and TAPTRv2 run their sliding windows; TAPTRv3 runs frame by frame as the
+    official streaming evaluation (``--streaming``) does.
 
     Args:
         model: a TAPTR model (switched to eval mode for the call).
@@ -57,7 +63,11 @@ def official_forward(
         query_frames: (N,) int start frame of each point.
         query_xy: (N, 2) start (x, y) normalised by (W − 1, H − 1).
         query_labels: (N,) optional start labels, 1 visible (default) or 2 occluded; they
-            only set the logits of frames the model never writes.
+            only set the logits of frames the model never writes (TAPTRv3 with visibility
+            weights ignores them, as the official code does).
+        history_frames: TAPTRv3 only: the most frames held per point, the current one
+            included (the official ``streaming_limited_size_of_placeholder``; 0: all).
+            Default: the model's.
 
     Returns:
         ``positions`` (T, N, 2) normalised and ``visibility_logits`` (T, N, 3) of the last
@@ -79,8 +89,13 @@ def official_forward(
             query_xy.to(device=device, dtype=video.dtype)[None],
             visible.to(device)[None],
         )
-        output = run_windows(
-            model, queries, video.shape[1], EncodedFrames(model, video), video.dtype
+        output = run_tracker(
+            model,
+            queries,
+            video.shape[1],
+            EncodedFrames(model, video),
+            video.dtype,
+            history_frames=history_frames,
         )
     finally:
         model.train(was_training)

@@ -113,6 +113,8 @@ class TrainConfig:
         visibility_weight: weight of the last layer's focal visibility loss.
         position_weight: weight of every L1 position loss.
         supervise_updated_positions: also supervise every layer's position-update output.
+        supervise_occluded_positions: the position losses also count occluded entries
+            (TAPTRv2); off, visible ones only (TAPTRv3's ``not_track_invisible``).
         backbone_weights: ``auto`` (ImageNet ResNet-50 weights from the torchvision cache
             when present, else random), ``none``, or a path to torchvision's file.
         init_from: checkpoint whose weights start the run (a taptr checkpoint or the
@@ -145,6 +147,7 @@ class TrainConfig:
     visibility_weight: float = 1.0
     position_weight: float = 5.0
     supervise_updated_positions: bool = True
+    supervise_occluded_positions: bool = True
     backbone_weights: str = "auto"
     init_from: str = ""
     init_parts: tuple[str, ...] = ()
@@ -213,7 +216,36 @@ def small() -> TrainConfig:
     )
 
 
-PRESETS = {"taptrv2": taptrv2, "small": small}
+def taptrv3() -> TrainConfig:
+    """The official TAPTRv3 recipe (ResNet-18), TAPTRv3-DELTA.md §6.
+
+    TAPTRv2's recipe with the ResNet-18 model's 384 × 512 crops, 4 decoder layers, no
+    content hand-over between frames, and positions supervised where visible.
+    """
+    return TrainConfig(
+        model=model_presets.taptrv3(),
+        data=DataConfig(root="data/kubric_movif/r512/train"),
+        out_dir="runs/taptrv3",
+        supervise_occluded_positions=False,
+    )
+
+
+def small_v3() -> TrainConfig:
+    """`small`'s CPU recipe for a TAPTRv3-architecture model (light backbone, C = 64)."""
+    base = small()
+    model = model_presets.taptrv3().replace(
+        backbone=model_presets.small().backbone,
+        d_model=64,
+        num_heads=4,
+        ffn_dim=256,
+        input_size=(128, 128),
+    )
+    return dataclasses.replace(
+        base, model=model, out_dir="runs/small_v3", supervise_occluded_positions=False
+    )
+
+
+PRESETS = {"taptrv2": taptrv2, "small": small, "taptrv3": taptrv3, "small_v3": small_v3}
 
 
 def _coerce(name: str, value: Any, default: Any) -> Any:

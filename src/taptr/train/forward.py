@@ -11,8 +11,9 @@ import torch
 from torch import Tensor, nn
 
 from taptr.data.sampling import ClipBatch
+from taptr.model.drivers import run_tracker
 from taptr.model.frames import PrecomputedFrames
-from taptr.model.sliding_window import QuerySet, TrackOutput, run_windows
+from taptr.model.sliding_window import QuerySet, TrackOutput
 from taptr.model.taptr import TAPTR, normalize_frames
 from taptr.train.losses import Targets
 
@@ -31,7 +32,7 @@ def batch_targets(batch: ClipBatch) -> Targets:
 
 
 class TrainingForward(nn.Module):
-    """Encodes a batch of clips and tracks its queries through every window.
+    """Encodes a batch of clips and tracks its queries through every window (or frame).
 
     Shape:
         video (B, T, 3, H, W) uint8 RGB; positions (B, T, N, 2) normalised (x, y);
@@ -50,6 +51,6 @@ class TrainingForward(nn.Module):
         frames = normalize_frames(video.float() / 255)
         queries = batch_queries(ClipBatch(video, positions, visible, start_frames))
         features = self.model.encode(frames)
-        return run_windows(
+        return run_tracker(
             self.model, queries, video.shape[1], PrecomputedFrames(features), torch.float32
         )

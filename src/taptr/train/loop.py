@@ -251,7 +251,8 @@ def train(config: TrainConfig, resume: str | os.PathLike[str] | None = None) -> 
             config.position_weight,
             config.supervise_updated_positions,
             # TAPTR v1 normalises its terms by the plain counts
-            count_offset=1.0 if run.model.config is None or run.model.config.version == 2 else 0.0,
+            count_offset=1.0 if run.model.config is None or run.model.config.version != 1 else 0.0,
+            occluded_positions=config.supervise_occluded_positions,
         )
         monitor = Monitor(run_dir / "tensorboard", info.is_main, config.steps, run.step)
         saved = Path(resume) if resume is not None else None

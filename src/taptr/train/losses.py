@@ -1,4 +1,4 @@
-"""The TAPTRv2 training losses (spec §5.3), on the full-video trajectories.
+"""The TAPTRv2 and TAPTRv3 training losses (spec §5.3), on the full-video trajectories.
 
 For every clip, with U the update mask (tracked frames strictly after each point's start
 frame):
@@ -15,7 +15,9 @@ frame):
   update" switch). One term per layer.
 
 TAPTR (v1) divides by the counts without the + 1 (`LossWeights.count_offset` 0); an empty
-count then gives 0 rather than the official 0/0 = NaN.
+count then gives 0 rather than the official 0/0 = NaN. TAPTRv3 supervises the positions of
+visible entries only (`LossWeights.occluded_positions` off: the official
+``not_track_invisible``), in both position terms.
 
 Per-clip losses are averaged over the batch, so a batch of one clip gives exactly the
 official values and a data-parallel run averages like one process on the combined batch.
@@ -46,6 +48,8 @@ class LossWeights:
         focal_gamma: γ of the focal loss.
         count_offset: added to the entry counts that normalise each term (1 in TAPTRv2,
             0 in TAPTR v1).
+        occluded_positions: the position terms also count entries where the point is
+            occluded (TAPTRv2); off, only visible ones (TAPTRv3).
     """
 
     visibility: float = 1.0
@@ -54,6 +58,7 @@ class LossWeights:
     focal_alpha: float = 0.25
     focal_gamma: float = 2.0
     count_offset: float = 1.0
+    occluded_positions: bool = True
 
 
 class Targets(NamedTuple):
@@ -164,6 +169,8 @@ def tracking_loss(output: TrackOutput, targets: Targets, weights: LossWeights) -
     layers, _, num_frames = output.layer_positions.shape[:3]
     updates = update_mask(targets.start_frames, num_frames)
     located = updates & inside_image(targets.positions)
+    if not weights.occluded_positions:
+        located = located & targets.visible
     gt = targets.positions.to(output.layer_positions.dtype)
 
     terms: dict[str, Tensor] = {}

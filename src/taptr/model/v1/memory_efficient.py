@@ -7,39 +7,29 @@ window's last frame takes its content from that last frame. It then decodes as u
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
-if TYPE_CHECKING:
-    from taptr.model.sliding_window import FrameSource, WindowBackend
-    from taptr.model.trajectory import TrackerState
+from torch import Tensor
 
 
-def initialise_in_first_window(
-    backend: WindowBackend,
-    state: TrackerState,
-    window_index: int,
-    first: int,
-    last: int,
-    frames: FrameSource,
-) -> None:
-    """Initialises every point from frame min(start, ``last``) before window 0 decodes.
+def first_window_content_frames(
+    memory_efficient: bool, training: bool, window_index: int, last: int, start_frames: Tensor
+) -> Tensor | None:
+    """The frame each point takes its content from before window 0 decodes, or None.
 
-    Does nothing unless ``backend`` is in the memory-efficient mode, not training, and
-    ``window_index`` is 0. Runs before the driver's skip check: the official code
-    initialises here even when the first window has nothing to update.
+    None unless the model is in the memory-efficient mode, not training, and
+    ``window_index`` is 0. The driver initialises the points from these frames before its
+    skip check: the official code initialises here even when the first window has nothing
+    to update.
 
     Args:
-        backend: the network (`taptr.model.sliding_window.WindowBackend`).
-        state: the driver state (updated in place).
+        memory_efficient: the backend's mode.
+        training: whether it is training.
         window_index: index of the window about to be decoded.
-        first: its first frame.
         last: its last frame (inclusive).
-        frames: gives the memory (B, W_t, S, C) of frames first..last.
-    """
-    if window_index != 0 or not backend.memory_efficient or backend.training:
-        return
-    # imported here: the driver imports this module
-    from taptr.model.sliding_window import initialise_points
+        start_frames: (B, N) each point's start frame.
 
-    content_frames = state.queries.start_frames.clamp(max=last)  # (B, N)
-    initialise_points(backend, state, frames(first, last), first, content_frames)
+    Returns:
+        (B, N) min(start, ``last``), or None.
+    """
+    if window_index != 0 or not memory_efficient or training:
+        return None
+    return start_frames.clamp(max=last)

@@ -1,0 +1,294 @@
+"""TAPTRv3's driver: decodes a video frame by frame, each frame once, in order.
+
+For every frame f, as the official streaming evaluation does:
+
+1. the frame's slot is opened in the history (`taptr.model.v3.history`);
+2. points starting on f take their content and context from f's memory, and every
+   frame they hold is set to that content;
+3. if no point is past its start frame, f is skipped: nothing is decoded or written;
+4. otherwise the decoder runs on f: initial content, the position carried from f − 1,
+   the held frames with their weights (`taptr.model.v3.decoder`);
+5. write-back: each layer's position (and position-update output) replaces the carried
+   one where the point was updated and is carried to the next frame; visibility logits
+   are reported for f only; the last layer's head features become f's held content.
+
+Points not yet started are carried at their query position, with the initial visibility
+logits (visible on their start frame, occluded elsewhere, in inverse-sigmoid form): what
+the official outputs hold on frames the model never writes.
+
+All of it goes through an explicit `FrameState`; `decode_frame` returns each frame's
+outputs as soon as it is decoded (one frame of latency), and `run_frames` stacks them for
+a whole video. Encoded frames come from a `taptr.model.sliding_window.FrameSource` asked
+for one frame at a time.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from taptr.geometry import inverse_sigmoid
+from taptr.model.sliding_window import FrameSource
+from taptr.model.taptr import FrameFeatures
+from taptr.model.trajectory import QuerySet, TrackOutput
+from taptr.model.v3.decoder import HeldFrames
+from taptr.model.v3.history import History, frame_weights
+from taptr.model.v3.taptr import TAPTRv3
+
+
+class FrameOutput(NamedTuple):
+    """Every point's outputs on one frame, per decoder layer.
+
+    Attributes:
+        frame: the frame.
+        positions: (D_l, B, N, 4) position logits.
+        visibility_logits: (D_l, B, N, 3) (channel 1 = visible).
+        updated_positions: (D_l, B, N, 4) position-update outputs (logits).
+    """
+
+    frame: int
+    positions: Tensor
+    visibility_logits: Tensor
+    updated_positions: Tensor
+
+
+@dataclass
+class FrameState:
+    """Everything the next frame needs; no other state exists anywhere.
+
+    Attributes:
+        queries: the points, in model units.
+        initial_content: (B, N, C) each point's initial content (zeros until it starts).
+        context: (B, N, K, K, C) its initial context, or None without the context-aware
+            attention.
+        initialised: (B, N) bool, whether the point has started.
+        positions: per layer, the (B, N, 4) logits carried to the next frame.
+        updated_positions: per layer, the (B, N, 4) position-update logits carried.
+        history: the points' held frames.
+        next_frame: the frame to decode next.
+    """
+
+    queries: QuerySet
+    initial_content: Tensor
+    context: Tensor | None
+    initialised: Tensor
+    positions: list[Tensor]
+    updated_positions: list[Tensor]
+    history: History
+    next_frame: int = 0
+
+
+def query_logits(queries: QuerySet, dtype: torch.dtype) -> Tensor:
+    """(B, N, 4) start positions (logit x, logit y, 0, 0): w = h = 0.5, as the official code."""
+    xy = inverse_sigmoid(queries.positions.to(dtype))
+    return torch.cat((xy, xy.new_zeros(*xy.shape[:-1], 2)), dim=-1)
+
+
+def initial_visibility(model: TAPTRv3, queries: QuerySet, frame: int) -> Tensor:
+    """(B, N, 3) float32 logits of frames the model does not write.
+
+    With visibility weights: visible on the point's start frame and occluded elsewhere,
+    whatever the start label; without (the ablation): the start label on every frame.
+    Both as inverse_sigmoid(one-hot), ±6.9078.
+    """
+    if model.visibility_weights:
+        label = torch.where(queries.start_frames == frame, 1, 2)
+    else:
+        label = torch.where(queries.start_visible, 1, 2)
+    return inverse_sigmoid(F.one_hot(label, 3).float())
+
+
+def start_state(
+    model: TAPTRv3, queries: QuerySet, dtype: torch.dtype, history_frames: int | None = None
+) -> FrameState:
+    """The state before the first frame.
+
+    Args:
+        model: the network.
+        queries: the points, in model units.
+        dtype: floating dtype of positions and content.
+        history_frames: the most frames held per point (0: all); default the model's.
+    """
+    batch, points = queries.start_frames.shape
+    channels = model.content_channels
+    like = queries.positions.new_zeros(1, dtype=dtype)
+    limit = model.history_frames if history_frames is None else history_frames
+    history = History(batch, channels, limit, like)
+    history.add_points(points)
+    logits = query_logits(queries, dtype)
+    patch = model.context_patch
+    return FrameState(
+        queries=queries,
+        initial_content=like.new_zeros(batch, points, channels),
+        context=like.new_zeros(batch, points, patch, patch, channels) if patch else None,
+        initialised=torch.zeros(batch, points, dtype=torch.bool, device=like.device),
+        positions=[logits] * model.num_layers,
+        updated_positions=[logits] * model.num_layers,
+        history=history,
+    )
+
+
+def add_points(model: TAPTRv3, state: FrameState, queries: QuerySet) -> None:
+    """Appends points to a running state; they join at their start frame.
+
+    Exact with respect to tracking them from the beginning as long as their start frame
+    is not decoded yet (a point influences nothing before it starts).
+    """
+    fresh = start_state(model, queries, state.initial_content.dtype, state.history.limit)
+    state.queries = QuerySet(
+        *(torch.cat(pair, dim=1) for pair in zip(state.queries, queries, strict=True))
+    )
+    state.initial_content = torch.cat((state.initial_content, fresh.initial_content), dim=1)
+    if state.context is not None and fresh.context is not None:
+        state.context = torch.cat((state.context, fresh.context), dim=1)
+    state.initialised = torch.cat((state.initialised, fresh.initialised), dim=1)
+    state.positions = [torch.cat(p, 1) for p in zip(state.positions, fresh.positions, strict=True)]
+    state.updated_positions = [
+        torch.cat(p, 1) for p in zip(state.updated_positions, fresh.updated_positions, strict=True)
+    ]
+    state.history.add_points(queries.start_frames.shape[1])
+
+
+def keep_points(state: FrameState, keep: Tensor) -> None:
+    """Drops the points not selected by the (N,) bool mask from a running state."""
+    state.queries = QuerySet(*(q[:, keep] for q in state.queries))
+    state.initial_content = state.initial_content[:, keep]
+    if state.context is not None:
+        state.context = state.context[:, keep]
+    state.initialised = state.initialised[:, keep]
+    state.positions = [p[:, keep] for p in state.positions]
+    state.updated_positions = [p[:, keep] for p in state.updated_positions]
+    state.history.keep_points(keep)
+
+
+def start_points(model: TAPTRv3, state: FrameState, features: FrameFeatures, frame: int) -> None:
+    """Step 2: content and context of the points starting on ``frame``, (B, 1, S, C) memory."""
+    new = (~state.initialised) & (state.queries.start_frames == frame)
+    if not bool(new.any()):
+        return
+    memory, spatial_shapes = features
+    content, context = model.point_queries(memory[:, 0], spatial_shapes, state.queries.positions)
+    state.initial_content = torch.where(new[..., None], content, state.initial_content)
+    if state.context is not None and context is not None:
+        state.context = torch.where(new[..., None, None, None], context, state.context)
+    state.initialised = state.initialised | new
+    state.history.restart(new, state.initial_content)
+
+
+def decode_frame(model: TAPTRv3, state: FrameState, frames: FrameSource) -> FrameOutput:
+    """Decodes the next frame and updates ``state`` in place (steps 1-5).
+
+    Args:
+        model: the network.
+        state: the driver state; ``state.next_frame`` is decoded.
+        frames: gives the memory (B, 1, S, C) of one frame; not called when no point
+            starts on the frame or is past its start.
+
+    Returns:
+        Every point's outputs on the frame.
+    """
+    frame = state.next_frame
+    state.next_frame += 1
+    starts = state.queries.start_frames
+    unwritten = initial_visibility(model, state.queries, frame)
+    state.history.open_frame(frame, state.initial_content, unwritten[..., 1])
+    features = None
+    if bool((starts == frame).any()):
+        features = frames(frame, frame)
+        start_points(model, state, features, frame)
+    update = starts < frame  # (B, N)
+    if not bool(update.any()):
+        return _carried(model, state, frame, unwritten)
+    if features is None:
+        features = frames(frame, frame)
+    memory, spatial_shapes = features
+    held = HeldFrames(
+        state.history.content,
+        frame - state.history.frames(),
+        frame_weights(
+            state.history.frames(),
+            starts,
+            state.history.visibility_logits,
+            model.visibility_weights,
+        ),
+    )
+    decoded = model.decode_frame(
+        memory[:, 0],
+        spatial_shapes,
+        state.initial_content[:, None],
+        state.positions[-1][:, None],
+        (starts <= frame)[:, None],
+        update[:, None],
+        held,
+        state.context,
+    )
+    step = update[..., None]
+    state.positions = [
+        torch.where(step, p[:, 0], old)
+        for p, old in zip(decoded.positions, state.positions, strict=True)
+    ]
+    assert decoded.updated_positions is not None
+    state.updated_positions = [
+        torch.where(step, p[:, 0], old)
+        for p, old in zip(decoded.updated_positions, state.updated_positions, strict=True)
+    ]
+    visibility = torch.where(step, decoded.visibility_logits[:, :, 0].float(), unwritten)
+    state.history.close_frame(decoded.features[:, 0], visibility[-1, ..., 1], update)
+    return FrameOutput(
+        frame, torch.stack(state.positions), visibility, torch.stack(state.updated_positions)
+    )
+
+
+def _carried(model: TAPTRv3, state: FrameState, frame: int, unwritten: Tensor) -> FrameOutput:
+    """A skipped frame's outputs: carried positions, unwritten visibility."""
+    layers = model.num_layers
+    return FrameOutput(
+        frame,
+        torch.stack(state.positions),
+        unwritten.expand(layers, *unwritten.shape),
+        torch.stack(state.updated_positions),
+    )
+
+
+def stack_outputs(outputs: list[FrameOutput]) -> TrackOutput:
+    """Frame outputs of frames 0..T−1, in order, as one `TrackOutput` (B, T, ...)."""
+    positions = torch.stack([o.positions for o in outputs], dim=2)  # (D_l, B, T, N, 4)
+    visibility = torch.stack([o.visibility_logits for o in outputs], dim=2)
+    updated = torch.stack([o.updated_positions for o in outputs], dim=2)
+    return TrackOutput(
+        positions[-1, ..., :2].sigmoid(), visibility[-1], positions, visibility, updated
+    )
+
+
+def run_frames(
+    model: TAPTRv3,
+    queries: QuerySet,
+    num_frames: int,
+    frames: FrameSource,
+    dtype: torch.dtype,
+    on_frame: Callable[[], object] | None = None,
+    history_frames: int | None = None,
+) -> TrackOutput:
+    """Tracks the queries through a whole video, frame by frame.
+
+    Args:
+        model: the network.
+        queries: points in model units.
+        num_frames: video length T.
+        frames: source of encoded frames.
+        dtype: floating dtype of the positions and content.
+        on_frame: called after each frame (progress reporting).
+        history_frames: the most frames held per point (0: all); default the model's.
+    """
+    state = start_state(model, queries, dtype, history_frames)
+    outputs = []
+    for _ in range(num_frames):
+        outputs.append(decode_frame(model, state, frames))
+        if on_frame is not None:
+            on_frame()
+    return stack_outputs(outputs)
