@@ -13,6 +13,8 @@ import argparse
 import os
 import pickle
 import socket
+import subprocess
+import sys
 import threading
 import warnings
 from pathlib import Path
@@ -455,19 +457,28 @@ def test_eval_with_ground_truth_far_outside_the_frame_exits_2(tmp_path, capsys):
 # -- noise ---------------------------------------------------------------------------------
 
 
-def test_warnings_are_one_taptr_line(monkeypatch, capsys):
-    def warns(_args: argparse.Namespace) -> int:
-        warnings.warn("clip.mp4: decoded 1 frames where the container declares 12", stacklevel=1)
-        return 0
+WARNS = """
+import sys, warnings
+import taptr.cli.sample_video as command
 
-    import taptr.cli.sample_video as command
+def run(_args):
+    warnings.warn("clip.mp4: decoded 1 frames where the container declares 12", stacklevel=1)
+    return 0
 
-    monkeypatch.setattr(command, "run", warns)
-    with warnings.catch_warnings():
-        warnings.simplefilter("always")
-        assert main(["sample-video", "x.mp4"]) == 0
-    err = capsys.readouterr().err
-    assert err == "taptr: warning: clip.mp4: decoded 1 frames where the container declares 12\n"
+command.run = run
+from taptr.cli.main import main
+sys.exit(main(["sample-video", "x.mp4"]))
+"""
+
+
+def test_warnings_are_one_taptr_line():
+    # a process of its own: pytest records warnings instead of printing them
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path))
+    done = subprocess.run([sys.executable, "-c", WARNS], capture_output=True, text=True, env=env)
+    assert done.returncode == 0, done.stderr
+    assert done.stderr == (
+        "taptr: warning: clip.mp4: decoded 1 frames where the container declares 12\n"
+    )
 
 
 def test_opencv_log_lines_do_not_reach_stderr(tmp_path, capfd, monkeypatch):

@@ -25,7 +25,6 @@ import sys
 import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import TextIO
 
 MAX_OPTION_VALUE = 2**31 - 1
 """Largest magnitude of a numeric option: beyond any frame count, size or point count."""
@@ -107,12 +106,14 @@ def clean_stderr() -> Iterator[None]:
         cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
     if "av" in sys.modules:
         sys.modules["av"].logging.set_level(None)
-    previous = warnings.showwarning
-    warnings.showwarning = _one_line_warning
+    # the format, not the display: whoever records warnings (pytest, a caller's
+    # catch_warnings) still receives them
+    previous = warnings.formatwarning
+    warnings.formatwarning = _one_line_warning
     try:
         yield
     finally:
-        warnings.showwarning = previous
+        warnings.formatwarning = previous
 
 
 def _one_line_warning(
@@ -120,12 +121,10 @@ def _one_line_warning(
     category: type[Warning],
     filename: str,
     lineno: int,
-    file: TextIO | None = None,
     line: str | None = None,
-) -> None:
+) -> str:
     """``taptr: warning: MESSAGE`` on one line, without the source line Python adds."""
-    text = " ".join(str(message).split())
-    print(f"taptr: warning: {text}", file=file or sys.stderr)
+    return f"taptr: warning: {' '.join(str(message).split())}\n"
 
 
 def user_os_error(error: OSError) -> str | None:
