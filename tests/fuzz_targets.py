@@ -6,7 +6,9 @@ outcomes: a `ValueError` (every reader's documented error; `CheckpointError` and
 limit errors are ValueErrors) or `FileNotFoundError` is clean, any other exception is a
 traceback, and a result that fails its validity check (NaN tracks, wrong shape or dtype) is
 silent wrong output. `tests/test_fuzz.py` asserts that nothing is a traceback or silent;
-`scripts/fuzz_report.py` counts the outcomes.
+`scripts/fuzz_report.py` counts the outcomes. The categories of issue 29 (decoders by content,
+lying sizes, logical views, special files, resource estimates) are in `tests.fuzz_hostile`;
+its `memory_bound` oracle (peak RSS growth per input) applies to every category.
 """
 
 from __future__ import annotations
@@ -27,13 +29,10 @@ import torch
 from hypothesis import strategies as st
 
 from taptr.io.safe_pickle import ALLOWED
-from tests import bombs
+from tests import bombs, fuzz_hostile
+from tests.fuzz_hostile import SilentError, memory_bound
 
 CLEAN = (ValueError, FileNotFoundError)
-
-
-class SilentError(AssertionError):
-    """A reader returned a result that is wrong (NaN, bad shape) instead of an error."""
 
 
 def classify(target: Callable[[Any], Any], value: Any, problems: list[str] | None = None) -> str:
@@ -45,7 +44,7 @@ def classify(target: Callable[[Any], Any], value: Any, problems: list[str] | Non
         problems: collects the formatted traceback of each traceback or silent outcome.
     """
     try:
-        with warnings.catch_warnings(), np.errstate(all="ignore"):
+        with memory_bound(), warnings.catch_warnings(), np.errstate(all="ignore"):
             warnings.simplefilter("ignore")
             target(value)
     except CLEAN:
@@ -424,5 +423,6 @@ CATEGORIES: dict[str, tuple[Any, Callable[[Any], Any]]] = {
     "checkpoint, key/shape/dtype/config mutations": (checkpoint_mutations(), read_checkpoint),
     "checkpoint, mutated bytes": (checkpoint_bytes, read_checkpoint),
     "video file / frame folder": (video_inputs(), read_video_files),
+    **fuzz_hostile.CATEGORIES,
 }
 """Every fuzzed input category: (strategy, target)."""

@@ -4,21 +4,24 @@ Each input category of `tests.fuzz_targets` must give a valid result or a clean 
 (`ValueError`, `FileNotFoundError`), never another exception and never NaN or a malformed
 array. The default profile (tests/conftest.py) runs a few examples per category;
 ``--hypothesis-profile=long`` runs 2,000, and ``scripts/fuzz_report.py`` tabulates them.
+Every input also runs under `tests.fuzz_hostile.memory_bound` (peak RSS growth per input).
 """
 
 from __future__ import annotations
 
 import contextlib
+import os
 import warnings
 
 import pytest
 from hypothesis import given
 
+from tests import fuzz_hostile as hostile
 from tests import fuzz_targets as targets
 
 
 def _run(target, value) -> None:
-    with warnings.catch_warnings():
+    with warnings.catch_warnings(), targets.memory_bound():
         warnings.simplefilter("ignore")  # a truncated video's frame-count warning is fine
         with contextlib.suppress(targets.CLEAN):
             target(value)
@@ -57,6 +60,32 @@ def test_fuzz_checkpoint_bytes(data):
 @given(targets.video_inputs())
 def test_fuzz_videos_and_frame_folders(files):
     _run(targets.read_video_files, files)
+
+
+@given(hostile.decoder_inputs())
+def test_fuzz_decoders_by_content(value):
+    _run(hostile.read_by_role, value)
+
+
+@given(hostile.lying_checkpoints())
+def test_fuzz_checkpoint_lying_record_sizes(data):
+    _run(hostile.read_watched_checkpoint, data)
+
+
+@given(hostile.view_checkpoints())
+def test_fuzz_checkpoint_logical_views(data):
+    _run(hostile.read_watched_checkpoint, data)
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs POSIX special files")
+@given(hostile.special_paths)
+def test_fuzz_special_files(value):
+    _run(hostile.read_special, value)
+
+
+@given(hostile.resource_requests())
+def test_fuzz_resource_estimates(request):
+    _run(hostile.check_estimate, request)
 
 
 def test_every_category_is_fuzzed():

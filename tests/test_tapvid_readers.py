@@ -79,7 +79,9 @@ def test_kinetics_shards_decode_jpeg_one_video_at_a_time(tmp_path, monkeypatch):
     write_kinetics_shard(folder / "0001_of_0010.pkl", clips[2:])
     opened = []
     real_open = tapvid.Image.open
-    monkeypatch.setattr(tapvid.Image, "open", lambda *a: opened.append(1) or real_open(*a))
+    monkeypatch.setattr(
+        tapvid.Image, "open", lambda *a, **k: opened.append(1) or real_open(*a, **k)
+    )
     pending = list(open_dataset("kinetics", tmp_path))
     assert [p.name for p in pending] == ["0", "1", "2"]  # numbered across shards
     assert not opened  # listing decodes nothing

@@ -27,10 +27,19 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from taptr.checkpoint_guards import (
+    all_finite,
+    config_shape_problem,
+    key_name,
+    named_failures,
+    short_repr,
+)
 from taptr.config import ModelConfig
 from taptr.io import limits
 from taptr.io.atomic import atomic_path
 from taptr.io.checkpoint_scan import ScanError, scan_checkpoint
+from taptr.io.file_kind import kind, require_file, shown
+from taptr.io.nesting import NestingError, check_nesting
 from taptr.model.build import build_model
 from taptr.model.taptr import TAPTR
 from taptr.official.convert import (
@@ -65,13 +74,20 @@ def read_file(path: str | os.PathLike[str]) -> Any:
     Raises:
         FileNotFoundError: the path does not exist.
         UnsafeCheckpointError: the file pickles other Python objects (they are named).
-        CheckpointError: the file is a web page (a download that saved the link's page),
-            not a readable PyTorch checkpoint, declares more data than it holds, or exceeds
-            the size limit; the message names the file.
+        CheckpointError: the path is not a regular file (a folder, FIFO or device, refused
+            before opening), is a web page (a download that saved the link's page), is not a
+            readable PyTorch checkpoint, declares more data than it holds, exceeds the size
+            limit or nests its data too deeply; the message names the file.
     """
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"checkpoint not found: {path}")
+    try:
+        if kind(path, "checkpoint") is None:
+            raise FileNotFoundError(f"checkpoint not found: {shown(path)}")
+        require_file(path, "checkpoint")
+    except FileNotFoundError:
+        raise
+    except ValueError as error:
+        raise CheckpointError(str(error)) from None
     if _is_web_page(path):
         raise CheckpointError(
             f"{path} is a web page (HTML), not a checkpoint: a download link saved its page "
@@ -94,11 +110,16 @@ def read_file(path: str | os.PathLike[str]) -> Any:
     try:
         with warnings.catch_warnings(), torch.serialization.safe_globals(SAFE_GLOBALS):
             warnings.simplefilter("ignore", UserWarning)
-            return torch.load(path, map_location="cpu", weights_only=True)
+            loaded = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:  # PyTorch raises many types; none may escape unnamed
         raise CheckpointError(
             f"cannot read {path}: not a PyTorch checkpoint or corrupt ({_short_reason(error)})"
         ) from None
+    try:  # every later step (messages, key names, the config) may walk it recursively
+        check_nesting(loaded, str(path))
+    except NestingError as error:
+        raise CheckpointError(str(error)) from None
+    return loaded
 
 
 def _is_web_page(path: Path) -> bool:
@@ -133,7 +154,7 @@ def _short_reason(error: BaseException) -> str:
     lines = [line.strip() for line in text.splitlines() if line.strip()]
     advice = ("weights_only", "Weights only", "Please", "Check the documentation", "trusted")
     useful = [line for line in lines if not any(word in line for word in advice)]
-    return useful[0] if useful else type(error).__name__
+    return useful[0][:300] if useful else type(error).__name__
 
 
 def check_weights(model: nn.Module, state_dict: Mapping[str, Any], source: str) -> None:
@@ -155,10 +176,11 @@ def _check_against(
     present = [k for k in state_dict if k in expected]
     tensors = [k for k in present if _dense(state_dict[k])]
     not_tensors = [f"{k}: {type(state_dict[k]).__name__}" for k in present if k not in tensors]
+    misshaped_keys = {k for k in tensors if tuple(state_dict[k].shape) != tuple(expected[k].shape)}
     misshaped = [
         f"{k}: checkpoint {list(state_dict[k].shape)} vs model {list(expected[k].shape)}"
         for k in tensors
-        if tuple(state_dict[k].shape) != tuple(expected[k].shape)
+        if k in misshaped_keys
     ]
     mistyped = [
         f"{k}: checkpoint {state_dict[k].dtype} vs model {expected[k].dtype}"
@@ -166,10 +188,13 @@ def _check_against(
         if state_dict[k].is_complex()
         or state_dict[k].is_floating_point() != expected[k].is_floating_point()
     ]
+    # only weights of the model's shape: their size is the model's, never what a file's
+    # view declares (a zero stride can show billions of elements of one stored number)
     non_finite = [
         k
         for k in tensors
-        if state_dict[k].is_floating_point() and not torch.isfinite(state_dict[k]).all()
+        if k not in misshaped_keys and state_dict[k].is_floating_point()
+        if not all_finite(state_dict[k])
     ]
     if not (missing or unexpected or not_tensors or misshaped or mistyped or non_finite):
         return
@@ -205,9 +230,16 @@ def load_weights(model: nn.Module, state_dict: Mapping[str, Tensor], source: str
 
 
 def _config(data: Any, source: str) -> ModelConfig:
-    """The checkpoint's model config, validated (types and ranges) before any module exists."""
+    """The checkpoint's model config, validated (types and ranges) before any module exists.
+
+    Its shape is bounded first (`taptr.checkpoint_guards.config_shape_problem`): the range
+    checks print the values they refuse.
+    """
     if not isinstance(data, Mapping):
         raise CheckpointError(f"{source}: 'config' is a {type(data).__name__}, not a mapping")
+    problem = config_shape_problem(data)
+    if problem:
+        raise CheckpointError(f"{source}: invalid model config: {problem}")
     try:
         return ModelConfig.from_dict(dict(data))
     except (ValueError, TypeError) as error:
@@ -249,9 +281,8 @@ def checkpoint_contents(
     if isinstance(checkpoint.get("format"), str) and checkpoint["format"] == FORMAT:
         version = checkpoint.get("version")
         if type(version) is not int or version != VERSION:  # a tensor or bool is no version
-            raise CheckpointError(
-                f"{source}: unsupported taptr checkpoint version {checkpoint.get('version')!r:.40}"
-            )
+            shown_version = short_repr(checkpoint.get("version"))
+            raise CheckpointError(f"{source}: unsupported taptr checkpoint version {shown_version}")
         config = _config(checkpoint.get("config"), source)
         weights = _weights(checkpoint, source)
     elif looks_official(checkpoint):
@@ -264,7 +295,7 @@ def checkpoint_contents(
         raise CheckpointError(
             f"{source} is neither a taptr checkpoint (no 'format': 'taptr' entry) nor an "
             f"official TAPTR release (no 'ema_model' / 'model' weights with official key "
-            f"names); top-level keys: {', '.join(map(str, list(checkpoint)[:10])) or 'none'}"
+            f"names); top-level keys: {', '.join(map(key_name, list(checkpoint)[:10])) or 'none'}"
         )
     _check_against(_skeleton(config), weights, source)
     return config, weights
@@ -275,7 +306,8 @@ def read_checkpoint(path: str | os.PathLike[str]) -> tuple[ModelConfig, dict[str
 
     For copying a file's weights into a model that exists already (fine-tuning).
     """
-    return checkpoint_contents(_read_mapping(path), str(path))
+    with named_failures(path):
+        return checkpoint_contents(_read_mapping(path), str(path))
 
 
 def model_from_checkpoint(
@@ -313,10 +345,11 @@ def load_checkpoint_and_threshold(
     path: str | os.PathLike[str], *, device: str | torch.device = "cpu"
 ) -> tuple[TAPTR, float | None]:
     """`load_checkpoint` and `read_visibility_threshold` of one file, reading it once."""
-    checkpoint = _read_mapping(path)
-    model, weights = model_from_checkpoint(checkpoint, str(path))
-    load_weights(model, weights, str(path))
-    return model.to(device).eval(), _stored_threshold(checkpoint, str(path))
+    with named_failures(path):
+        checkpoint = _read_mapping(path)
+        model, weights = model_from_checkpoint(checkpoint, str(path))
+        load_weights(model, weights, str(path))
+        return model.to(device).eval(), _stored_threshold(checkpoint, str(path))
 
 
 def _read_mapping(path: str | os.PathLike[str]) -> Mapping[str, Any]:
@@ -373,7 +406,7 @@ def _stored_threshold(checkpoint: Any, source: str) -> float | None:
         return None
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < 1:
         raise CheckpointError(
-            f"{source}: visibility_threshold must be a number in (0, 1), got {value!r:.40}"
+            f"{source}: visibility_threshold must be a number in (0, 1), got {short_repr(value)}"
         )
     return float(value)
 

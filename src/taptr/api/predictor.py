@@ -31,6 +31,7 @@ from taptr.api.resize import resize_frames
 from taptr.api.support import with_support
 from taptr.config import SUPPORT_KINDS
 from taptr.geometry import normalized_to_pixels
+from taptr.memory_estimate import check_memory, estimate_tracking
 from taptr.model.drivers import run_tracker, step_count
 from taptr.model.frames import EncodedFrames
 from taptr.model.kernel_choice import choose_kernel
@@ -223,6 +224,7 @@ class Predictor:
             queries = grid_queries(grid_size, grid_query_frame, height, width)
         assert queries is not None
         query = query_tensor(queries, batch, num_frames, height, width)
+        self._check_memory(num_frames, query.shape[1], (height, width), backward)
         steps = step_count(self.model, num_frames)
         # the reversed pass runs only for videos with a query after frame 0
         passes = sum(1 + (backward and needs_backward(query[b])) for b in range(batch))
@@ -235,6 +237,31 @@ class Predictor:
         tracks, logits = (torch.stack(parts) for parts in zip(*results, strict=True))
         visibility = logits.sigmoid() > self.visibility_threshold
         return TrackingResult(tracks, visibility, logits, query)
+
+    def _check_memory(
+        self, num_frames: int, num_points: int, frame_size: tuple[int, int], backward: bool
+    ) -> None:
+        """Refuses a run whose estimated peak memory exceeds the budget (before it starts).
+
+        Raises:
+            taptr.memory_estimate.MemoryEstimateError: a one-line ValueError naming the
+                knobs (`taptr.memory_estimate`).
+        """
+        if self.model.config is None:
+            return
+        points = max(num_points, self.context_points)
+        estimate = estimate_tracking(
+            self.model.config,
+            input_size=self.input_size,
+            num_frames=num_frames,
+            num_points=points,
+            frame_size=frame_size,
+            whole_video=False,  # the caller holds the video already
+            backward=backward,
+        )
+        what = f"tracking {points:,} points through {num_frames:,} frames at {self.input_size}"
+        knobs = "use a smaller input_size, fewer points or fewer frames"
+        check_memory(estimate, what, knobs, self.device.type)
 
     def prepare(self, frames: Tensor) -> Tensor:
         """Model input from frames: (F, 3, H, W) uint8 or in [0, 1] → (1, F, 3, H_m, W_m).

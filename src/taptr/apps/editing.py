@@ -30,6 +30,9 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 
+from taptr.io.file_kind import kind, require_file
+from taptr.io.image_guard import STILL_FORMATS, NotAnImageError, read_image_channels
+
 HOMOGRAPHY_MIN_POINTS = 8
 """Fewer visible points than this fit a similarity (rotation, scale, shift) instead."""
 
@@ -82,21 +85,26 @@ def read_mask(
     layer all read as drawn; anti-aliased edges count as inside.
 
     Args:
-        path: image file (PNG recommended; any format OpenCV reads, 8 or 16 bits).
+        path: image file (PNG recommended; JPEG, BMP, TIFF, WebP and PPM are read too,
+            through `taptr.io.image_guard`: header first, within the ``image_pixels`` limit).
         name: what messages call the file, e.g. ``"--mask"`` for the command line.
         size: (height, width) the mask must have (the video's), or None for any.
 
     Raises:
         FileNotFoundError: no such file.
-        ValueError: naming the file, when it is not an image, has another size than
-            ``size`` or no pixel is inside.
+        ValueError: naming the file, when it is not a regular file or not an image, exceeds
+            the ``image_pixels`` limit, has another size than ``size`` or no pixel is inside.
     """
     source = Path(path)
-    if not source.is_file():
+    if kind(source, name) is None:
         raise FileNotFoundError(f"{name} {source}: file not found")
-    image = cv2.imread(str(source), cv2.IMREAD_UNCHANGED)
-    if image is None or image.ndim not in (2, 3) or image.size == 0:
-        raise ValueError(f"{name} {source}: not an image OpenCV can read (use a PNG)")
+    require_file(source, name)
+    try:
+        image = read_image_channels(source, f"{name} {source}")
+    except NotAnImageError:
+        raise ValueError(
+            f"{name} {source}: not an image taptr reads ({', '.join(STILL_FORMATS)}); use a PNG"
+        ) from None
     height, width = image.shape[:2]
     if size is not None and (height, width) != tuple(size):
         raise ValueError(f"{name} {source} is {width}x{height}, the video is {size[1]}x{size[0]}")
@@ -110,7 +118,7 @@ def read_mask(
 
 
 def _inside(image: np.ndarray) -> np.ndarray:
-    """Pixels that are neither black nor transparent, for OpenCV's 1-4 channel layouts."""
+    """Pixels that are neither black nor transparent: grey, grey + alpha, RGB or RGBA."""
     if image.ndim == 2:
         return image != 0
     channels = image.shape[2]

@@ -13,6 +13,7 @@ from taptr.cli.model_options import (
     load_predictor,
 )
 from taptr.cli.options import check_at_least, check_output_file
+from taptr.cli.run_memory import check_run_memory
 
 if TYPE_CHECKING:
     from collections.abc import Iterator
@@ -76,7 +77,9 @@ def run(args: argparse.Namespace) -> int:
     info = video_info(args.video)
     mask = read_mask(args.mask, name="--mask", size=(info.height, info.width))
     overlay = (
-        read_video(args.overlay)[0] if Path(args.overlay).is_dir() else _read_overlay(args.overlay)
+        read_video(args.overlay, max_frames=1)[0]
+        if Path(args.overlay).is_dir()
+        else _read_overlay(args.overlay)
     )
     queries = sample_region_queries(mask, args.query_frame, stride=args.stride)
     check_num_points(len(queries), f"--mask {args.mask} with --stride {args.stride}")
@@ -86,6 +89,14 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"--query-frame {args.query_frame} outside [0, {declared})")
     predictor = load_predictor(args)
     if info.num_frames is not None:
+        check_run_memory(
+            args,
+            predictor,
+            num_frames=min(info.num_frames, args.max_frames or info.num_frames),
+            num_points=len(queries),
+            frame_size=(info.height, info.width),
+            whole_video=False,
+        )
         # frame by frame; frames before a later query frame come from a backward read
         try:
             edited = _edited_frames(args, predictor, queries, mask, overlay, info.num_frames)
@@ -154,15 +165,15 @@ def _edited_frames(
 
 
 def _read_overlay(path: str) -> np.ndarray:
-    import cv2
     import numpy as np
 
-    if not Path(path).is_file():
+    from taptr.io.file_kind import kind, require_file
+    from taptr.io.image_guard import read_image_channels
+
+    if kind(path, "--overlay") is None:
         raise FileNotFoundError(f"--overlay {path}: file not found")
-    image = cv2.imread(path, cv2.IMREAD_UNCHANGED)
-    if image is None or image.ndim != 3 or image.shape[2] not in (3, 4):
-        raise ValueError(f"--overlay {path}: not an RGB or RGBA image OpenCV can read")
-    if image.dtype != np.uint8:
-        raise ValueError(f"--overlay {path}: {image.dtype} pixels; save it with 8 bits a channel")
-    code = cv2.COLOR_BGRA2RGBA if image.shape[2] == 4 else cv2.COLOR_BGR2RGB
-    return cv2.cvtColor(image, code)
+    require_file(path, "--overlay")  # a FIFO would block, a device never end
+    image = read_image_channels(path, f"--overlay {path}")  # header checked before decoding
+    if image.ndim != 3 or image.shape[2] not in (3, 4) or image.dtype != np.uint8:
+        raise ValueError(f"--overlay {path}: not an RGB or RGBA image with 8 bits a channel")
+    return image

@@ -2,9 +2,12 @@
 
 Each subcommand module defines ``add_parser(subparsers)``, which registers its parser and
 sets ``func(args) -> int``. Every failure prints one line ``taptr COMMAND: error: ...``:
-bad arguments and files exit with status 2, running out of memory and bugs with 1 (bugs
-say so, and ``-v`` shows their traceback), Ctrl-C with 130 and SIGTERM with 143; temporary
-files are removed on the way out.
+bad arguments and files exit with status 2 (so does a run whose estimated memory exceeds
+what the machine has, `taptr.memory_estimate`), running out of memory anyway and bugs
+with 1 (an allocator's failure names the knobs to turn; bugs say so, and ``-v`` shows their
+traceback), Ctrl-C with 130 and SIGTERM with 143; temporary files are removed on the way
+out. Before the command runs, `taptr.cli.guards` checks numeric options and ``TAPTR_MAX_*``
+variables and quiets third-party log lines.
 """
 
 from __future__ import annotations
@@ -21,6 +24,8 @@ import traceback
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from typing import NoReturn
+
+from taptr.cli import guards
 
 COMMANDS = (
     "convert",
@@ -110,13 +115,22 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, handlers=[handler])
     prefix = f"taptr {args.command}: error:"
     try:
-        with sigterm_raises():
+        with sigterm_raises(), guards.clean_stderr():
+            guards.check_numbers(parser, args)
+            guards.check_limits()
             return int(args.func(args) or 0)
     except USER_ERRORS as error:
         if args.verbose:
             traceback.print_exc()
         message = error.args[0] if isinstance(error, KeyError) and error.args else error
         print(f"{prefix} {one_line(str(message))}", file=sys.stderr)
+        return 2
+    except OSError as error:  # a name too long, a full disk: about the user's files
+        if guards.user_os_error(error) is None:
+            return _failed(args, prefix, error)
+        if args.verbose:
+            traceback.print_exc()
+        print(f"{prefix} {guards.user_os_error(error)}", file=sys.stderr)
         return 2
     except Terminated:
         print("terminated", file=sys.stderr)
@@ -125,10 +139,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("interrupted", file=sys.stderr)
         return 130
     except Exception as error:  # the last resort: one line, not a traceback
-        if args.verbose:
-            traceback.print_exc()
-        print(f"{prefix} {describe_failure(error, args.command)}", file=sys.stderr)
-        return 1
+        return _failed(args, prefix, error)
+
+
+def _failed(args: argparse.Namespace, prefix: str, error: Exception) -> int:
+    """Prints the last-resort line (out of memory, or a bug) and returns status 1."""
+    if args.verbose:
+        traceback.print_exc()
+    print(f"{prefix} {describe_failure(error, args.command)}", file=sys.stderr)
+    return 1
 
 
 class LevelFormatter(logging.Formatter):
@@ -169,14 +188,14 @@ def one_line(message: str) -> str:
 
 def describe_failure(error: Exception, command: str) -> str:
     """One line for an exception that is not a user error: out of memory, or a bug."""
+    from taptr.memory_estimate import allocator_failure
+
     text = " ".join(str(error).split())
     if len(text) > 300:
         text = text[:300] + " ..."
-    if isinstance(error, MemoryError) or "out of memory" in text.lower():
-        return (
-            f"out of memory ({type(error).__name__}: {text}); try fewer points or frames, "
-            "or a smaller --input-size"
-        )
+    out_of_memory = allocator_failure(error)
+    if out_of_memory:
+        return out_of_memory
     return (
         f"{type(error).__name__}: {text} (this is a bug in taptr; 'taptr -v {command} ...' "
         "shows the traceback to report)"

@@ -33,6 +33,9 @@ if TYPE_CHECKING:
 MAX_LINE_CHARS = 4096
 """Longest line of a points file; a longer one is not a list of points."""
 
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+"""Largest magnitude of a query number (queries are float32)."""
+
 
 def parse_points(text: str, flag: str = "--points") -> np.ndarray:
     """``"t,x,y;t,x,y"`` → (N, 3) float32; every point has three comma-separated numbers.
@@ -70,10 +73,12 @@ def read_points_file(path: str, flag: str = "--points-file") -> np.ndarray:
             numbers, text that is not UTF-8, or more points than `max_points`.
     """
     from taptr.api.inputs import check_num_points, max_points
+    from taptr.io.file_kind import kind, require_file
 
     file = Path(path)
-    if not file.is_file():
+    if kind(file, flag) is None:
         raise FileNotFoundError(f"{flag} {file}: file not found")
+    require_file(file, flag)  # a FIFO would block, /dev/zero never end
     rows: list[tuple[float, float, float]] = []
     limit = max_points()
     try:
@@ -165,6 +170,9 @@ def _triple(fields: list[str], where: str) -> tuple[float, float, float]:
     values = tuple(float(field) for field in fields)
     if not all(math.isfinite(value) for value in values):
         raise ValueError(f"{where}: NaN or infinite number")
+    if not all(abs(value) <= FLOAT32_MAX for value in values):
+        # queries are float32: a larger number would become inf (numpy warns, then NaN)
+        raise ValueError(f"{where}: a number beyond float32's range (±{FLOAT32_MAX:.3g})")
     return values  # type: ignore[return-value]
 
 

@@ -22,6 +22,7 @@ from taptr.cli.options import (
     check_output_folder,
 )
 from taptr.cli.points import build_queries, check_listed_points, listed_points
+from taptr.cli.run_memory import check_run_memory
 
 if TYPE_CHECKING:
     from taptr.api.predictor import Predictor
@@ -215,6 +216,14 @@ def _track_streaming(
     last_frame: list[np.ndarray] = [np.zeros(0, np.uint8)]
     # checked before the first frame is decoded, with the predictor's own messages
     queries = query_tensor(queries, 1, num_frames, info.height, info.width)[0].numpy()
+    check_run_memory(
+        args,
+        predictor,
+        num_frames=num_frames,
+        num_points=len(queries),
+        frame_size=(info.height, info.width),
+        whole_video=False,
+    )
 
     def read() -> Iterator[np.ndarray]:
         return iter_frames(video, max_frames=args.max_frames)
@@ -270,6 +279,14 @@ def _track_in_memory(
 
     frames = read_video(video, max_frames=args.max_frames)
     queries = listed if listed is not None else build_queries(args, *frames.shape[:3])
+    check_run_memory(
+        args,
+        predictor,
+        num_frames=len(frames),
+        num_points=len(queries),
+        frame_size=frames.shape[1:3],
+        whole_video=False,  # already read: the check is about what tracking adds
+    )
     result = predictor.track(frames, queries, backward=args.backward, progress=True)
     tracks = result.tracks[0].numpy()
     visibility = result.visibility[0].numpy()

@@ -25,7 +25,8 @@ import numpy as np
 
 from taptr.io import limits
 from taptr.io.atomic import atomic_path
-from taptr.io.image_guard import image_size
+from taptr.io.file_kind import kind
+from taptr.io.image_guard import image_size, read_image
 from taptr.io.safe_npy import load_npy
 from taptr.types import TrackingSample
 
@@ -75,31 +76,21 @@ def _frame_paths(folder: Path) -> list[Path]:
 
 
 def _read_frames(paths: list[Path], bgr: bool) -> np.ndarray:
-    size = image_size(paths[0], str(paths[0]))
-    if size is not None:  # an unreadable first frame is reported by the loop below
-        needed = len(paths) * size[0] * size[1] * 3
-        what = f"{paths[0].parent}: {len(paths)} frames of {size[1]}x{size[0]}"
-        limits.check("video_bytes", needed, what)
-    frames = []
-    for path in paths:
-        # every header is checked before OpenCV decodes (its own bomb limit is 2**30 pixels)
-        if size is not None and image_size(path, str(path)) not in (size, None):
-            raise ValueError(f"{path}: size differs from the first frame's {size[1]}x{size[0]}")
-        image = cv2.imread(str(path), cv2.IMREAD_COLOR)
-        if image is None:
-            raise ValueError(f"{path}: not a readable image")
-        frames.append(image if bgr else cv2.cvtColor(image, cv2.COLOR_BGR2RGB))
-        if frames[-1].shape != frames[0].shape:
-            raise ValueError(
-                f"{path}: size {frames[-1].shape[1]}x{frames[-1].shape[0]} differs from the "
-                f"first frame's {frames[0].shape[1]}x{frames[0].shape[0]}"
-            )
-    return np.stack(frames)
+    height, width = image_size(paths[0], str(paths[0]))
+    needed = len(paths) * height * width * 3
+    limits.check(
+        "video_bytes", needed, f"{paths[0].parent}: {len(paths)} frames of {width}x{height}"
+    )
+    video = np.empty((len(paths), height, width, 3), np.uint8)
+    for index, path in enumerate(paths):
+        # header first, decoded by the library that read it (taptr.io.image_guard)
+        video[index] = read_image(path, str(path), size=(height, width))
+    return video[..., ::-1] if bgr else video
 
 
 def _read_annotations(path: Path, num_frames: int) -> tuple[np.ndarray, np.ndarray]:
     """(N, T, 2) coordinates and (N, T) occlusion flags, validated."""
-    if not path.is_file():
+    if kind(path, "annotation file") is None:
         found = sorted(p.name for p in path.parent.glob("*.npy"))
         listed = f" (found: {', '.join(found)})" if found else ""
         raise FileNotFoundError(f"missing annotation file {path}{listed}")

@@ -119,11 +119,13 @@ def find_photo(source: PhotoSource) -> Path:
 
 
 def read_photo(path: str | os.PathLike[str]) -> np.ndarray:
-    """Reads an image file as (H, W, 3) uint8 RGB (grey and alpha images are converted)."""
-    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if image is None:
-        raise ValueError(f"cannot read an image from {path}")
-    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+    """Reads an image file as (H, W, 3) uint8 RGB (grey and alpha images are converted).
+
+    Through `taptr.io.image_guard`: the header is checked (format, ``image_pixels``) first.
+    """
+    from taptr.io.image_guard import STILL_FORMATS, read_image
+
+    return read_image(path, str(path), formats=STILL_FORMATS)
 
 
 def load_builtin_photos(split: Literal["train", "heldout"]) -> list[np.ndarray]:

@@ -40,6 +40,7 @@ from PIL import Image
 from tqdm import tqdm
 
 from taptr.io.atomic import atomic_path
+from taptr.io.video import open_video
 
 logger = logging.getLogger(__name__)
 
@@ -173,14 +174,11 @@ def extract_frames(
 
 
 def _resampled_frames(path: Path, fps: float) -> Iterator[np.ndarray]:
-    """(H, W, 3) uint8 RGB frames of the first video stream, through ``fps=<fps>``."""
-    try:
-        container = av.open(str(path))
-    except av.error.FFmpegError as error:
-        raise ValueError(f"{path}: cannot open the video ({error})") from None
-    with container:
-        if not container.streams.video:
-            raise ValueError(f"{path}: no video stream")
+    """(H, W, 3) uint8 RGB frames of the first video stream, through ``fps=<fps>``.
+
+    Opened the guarded way (`taptr.io.video.open_video`: header checked before decoding).
+    """
+    with open_video(path) as container:
         stream = container.streams.video[0]
         graph = av.filter.Graph()
         source = graph.add_buffer(template=stream)

@@ -29,6 +29,7 @@ import numpy as np
 from PIL import Image  # noqa: F401  (tests count the frames opened through it)
 
 from taptr.io import limits
+from taptr.io.file_kind import kind
 from taptr.io.image_guard import open_image, to_rgb
 from taptr.io.safe_pickle import load_pickle
 from taptr.types import TrackingSample
@@ -88,12 +89,13 @@ def find_tapvid_files(dataset: str, root: str | os.PathLike[str]) -> list[Path]:
     if dataset not in LAYOUT:
         raise ValueError(f"unknown TAP-Vid set {dataset!r}; expected one of {TAPVID_DATASETS}")
     root = Path(root)
-    if root.is_file():
+    if kind(root, f"TAP-Vid {dataset} root") == "file":  # a FIFO or device is refused here
         return [root]
     folder, pattern = LAYOUT[dataset]
     candidates = [root / folder, root]
     for directory in candidates:
-        files = sorted(p for p in directory.glob(pattern) if p.is_file())
+        # a FIFO or device named like a dataset file is refused, never opened
+        files = sorted(p for p in directory.glob(pattern) if kind(p, "dataset file") == "file")
         if files:
             if dataset == "kinetics" and len(files) != KINETICS_SHARDS:
                 logger.warning("found %d of %d Kinetics shards", len(files), KINETICS_SHARDS)
@@ -120,6 +122,12 @@ def decode_frames(frames: Any, label: str = "video") -> np.ndarray:
     if isinstance(frames, np.ndarray) and frames.dtype == np.uint8 and frames.ndim == 4:
         limits.check("video_frames", len(frames), f"{label}: {len(frames):,} frames")
         return frames
+    if isinstance(frames, np.ndarray) and frames.dtype.kind not in "OS":  # objects, bytes
+        # a decoded video of another type or shape: not a list of encoded frames either
+        raise ValueError(
+            f"{label}: 'video' is a {frames.dtype} array of shape {frames.shape}; expected "
+            "(T, H, W, 3) uint8 frames or a list of PNG/JPEG-encoded frames"
+        )
     if not isinstance(frames, (list, tuple, np.ndarray)) or not len(frames):
         raise ValueError(f"{label}: expected (T, H, W, 3) uint8 frames or a list of png/jpg frames")
     limits.check("video_frames", len(frames), f"{label}: {len(frames):,} frames")

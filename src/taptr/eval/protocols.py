@@ -174,6 +174,7 @@ def evaluate_video(
         index: position of the video in the dataset.
     """
     start = time.perf_counter()
+    check_ground_truth(sample)
     clip = protocol.prepare(sample)
     points = sample_queries(clip.tracks, clip.visible, query_mode)
     result = VideoResult(index, sample.name or str(index), len(points.queries), len(clip.video))
@@ -189,3 +190,33 @@ def evaluate_video(
     )
     result.seconds = time.perf_counter() - start
     return result, Prediction(points, tracks, visible)
+
+
+GROUND_TRUTH_MARGIN = 0.05
+"""Visible ground truth may lie this fraction of the frame's side outside it (rounding,
+points on the border); beyond, the coordinates are in other units (pixels in a file of
+normalised points) or corrupt, and scoring them would give meaningless numbers."""
+
+
+class UnscorableVideoError(ValueError):
+    """A video's ground truth cannot be scored; the message names the video."""
+
+
+def check_ground_truth(sample: TrackingSample) -> None:
+    """Raises `UnscorableVideoError` when visible ground truth lies outside the frame.
+
+    Args:
+        sample: a video as a reader returns it; tracks (T, N, 2) pixels, visible (T, N).
+    """
+    height, width = sample.video.shape[1:3]
+    low = -0.5 - GROUND_TRUTH_MARGIN * np.array([width, height])
+    high = np.array([width, height]) - 0.5 + GROUND_TRUTH_MARGIN * np.array([width, height])
+    outside = sample.visible & ((sample.tracks < low) | (sample.tracks > high)).any(-1)
+    if outside.any():
+        frame, point = (int(i) for i in np.argwhere(outside)[0])
+        x, y = (float(v) for v in sample.tracks[frame, point])
+        raise UnscorableVideoError(
+            f"video {sample.name!r}: {int(outside.sum()):,} visible ground-truth positions lie "
+            f"outside its {width}x{height} frame (e.g. point {point} on frame {frame} at "
+            f"({x:.4g}, {y:.4g}) pixels); the points must be normalised to [0, 1]"
+        )

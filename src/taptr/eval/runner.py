@@ -27,6 +27,7 @@ from taptr.eval.protocols import (
     EvalProtocol,
     OfficialProtocol,
     StandardProtocol,
+    UnscorableVideoError,
     VideoResult,
     evaluate_video,
 )
@@ -207,16 +208,20 @@ def run_evaluation(
         protocol = build_protocol(config, device)
         videos = open_dataset(config.dataset, config.root)
         worst = WorstVideos(config.overlays) if config.overlays else None
-        local = evaluate(
-            protocol,
-            videos,
-            config.mode,
-            max_videos=config.max_videos,
-            shard=shard,
-            worst=worst,
-            progress=progress and shard.is_main,
-        )
+        try:
+            local = evaluate(
+                protocol,
+                videos,
+                config.mode,
+                max_videos=config.max_videos,
+                shard=shard,
+                worst=worst,
+                progress=progress and shard.is_main,
+            )
+        except UnscorableVideoError as error:
+            raise ValueError(f"{config.dataset} {config.root}: {error}") from None
         results = sorted(gather(local, shard), key=lambda r: r.index)
+    check_something_scored(results, config)
     resolved = dataclasses.asdict(config) | {
         "root": str(Path(config.root).resolve()),
         "device": device.split(":")[0],
@@ -232,6 +237,27 @@ def run_evaluation(
                 path = Path(out_dir) / "overlays" / _safe(name)
                 files.append(write_overlay(path, protocol, candidate, config.mode))
     return EvalRun(report, shard.is_main, files)
+
+
+def check_something_scored(results: list[VideoResult], config: EvalConfig) -> None:
+    """Refuses an evaluation that scored nothing; warns about each video without points.
+
+    Raises:
+        ValueError: no video was read, or no video has an evaluable point (every point
+            occluded wherever a query could go); the message names the dataset and videos.
+    """
+    where = f"{config.dataset} {config.root}"
+    if not results:
+        raise ValueError(f"{where}: no videos to evaluate")
+    empty = [r.name for r in results if r.num_points == 0]
+    if len(empty) == len(results):
+        names = ", ".join(repr(name) for name in empty[:5]) + (" ..." if len(empty) > 5 else "")
+        raise ValueError(
+            f"{where}: no evaluable point in any of its {len(results)} videos ({names}): every "
+            f"point is occluded on every frame a {config.mode!r} query could use; nothing to score"
+        )
+    for name in empty:
+        logger.warning("%s: video %r has no evaluable point; it stays out of the mean", where, name)
 
 
 def _safe(name: str) -> str:

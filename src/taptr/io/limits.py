@@ -20,9 +20,19 @@ name                    environment variable           default     what it bound
                                                                    (PIL's bomb threshold)
 ``points``              ``TAPTR_MAX_POINTS``           100,000     query points of one tracking
                                                                    call (CLI and Python API)
+``memory``              ``TAPTR_MAX_MEMORY``           (unset)     a tracking run's estimated peak
+                                                                   memory (`taptr.memory_estimate`);
+                                                                   unset: what the machine has
 ======================  =============================  ==========  ===============================
 
-Values are integers; byte limits also accept the suffixes K, M, G and T (powers of 1024).
+Values are whole numbers; byte limits also accept the suffixes K, M, G and T (powers of
+1024). A value that is not one (``1.5G``, ``-1``, ``lots``) is an error naming the variable,
+never ignored: `check_environment` checks every ``TAPTR_MAX_*`` variable when a command
+starts, and each reader checks its own when it reads it.
+
+Streamed reading (``taptr track`` and ``taptr edit`` decode, track and encode frame by frame)
+never holds a whole video, so ``video_bytes`` bounds it only when its variable is set; the
+``image_pixels`` limit bounds every frame on every path.
 """
 
 from __future__ import annotations
@@ -55,10 +65,20 @@ LIMITS: dict[str, Limit] = {
         "TAPTR_MAX_IMAGE_PIXELS", 89_478_485, "pixels", "one decoded image or frame"
     ),
     "points": Limit("TAPTR_MAX_POINTS", 100_000, "points", "query points of one tracking call"),
+    "memory": Limit(
+        "TAPTR_MAX_MEMORY", 0, "bytes", "a tracking run's estimated peak memory (0: unset)"
+    ),
 }
 """Every limit by name; docs/FAQ.md lists them for users."""
 
 _SUFFIXES = {"K": 1024, "M": 1024**2, "G": 1024**3, "T": 1024**4}
+
+PREFIX = "TAPTR_MAX_"
+"""Every limit's variable starts so; `check_environment` looks at all such variables."""
+
+MAX_DIGITS = 19
+"""Longest number accepted: a limit beyond 10**19 means no limit, and longer digit strings
+would only make int() slow."""
 
 
 class LimitError(ValueError):
@@ -70,19 +90,53 @@ def limit(name: str) -> int:
 
     Raises:
         KeyError: unknown limit name.
-        ValueError: the environment variable is not a positive integer.
+        ValueError: the environment variable is not a positive whole number (the message
+            names the variable and the syntax).
     """
     entry = LIMITS[name]
     text = os.environ.get(entry.variable, "").strip()
-    if not text:
-        return entry.default
-    scale = _SUFFIXES.get(text[-1].upper(), 1)
+    return parse(entry, text) if text else entry.default
+
+
+def is_set(name: str) -> bool:
+    """Whether the user set limit ``name``'s variable (to anything but blanks)."""
+    return bool(os.environ.get(LIMITS[name].variable, "").strip())
+
+
+def parse(entry: Limit, text: str) -> int:
+    """The value ``text`` gives limit ``entry``.
+
+    Raises:
+        ValueError: ``text`` is not a positive whole number (with K, M, G or T for bytes).
+    """
+    scale = _SUFFIXES.get(text[-1:].upper(), 1) if entry.unit == "bytes" else 1
     digits = text[:-1] if scale > 1 else text
-    if not digits.isdigit() or int(digits) < 1:
+    if not (digits.isascii() and digits.isdigit()) or len(digits) > MAX_DIGITS or not int(digits):
+        suffixes = ", optionally followed by K, M, G or T (powers of 1024)"
+        example = "e.g. 1536M" if entry.unit == "bytes" else "e.g. 20000"
         raise ValueError(
-            f"{entry.variable}={text!r} must be a positive integer (K, M, G, T allowed)"
+            f"{entry.variable}={text[:40]!r} is not a valid limit: write a positive whole "
+            f"number of {entry.unit}{suffixes if entry.unit == 'bytes' else ''} ({example})"
         )
     return int(digits) * scale
+
+
+def check_environment() -> list[str]:
+    """Checks every ``TAPTR_MAX_*`` variable; returns the names that are no taptr limit.
+
+    Raises:
+        ValueError: a limit's variable does not parse (the message names it and the syntax).
+    """
+    known = {entry.variable: entry for entry in LIMITS.values()}
+    unknown = []
+    for variable, text in sorted(os.environ.items()):
+        if not variable.startswith(PREFIX) or not text.strip():
+            continue
+        if variable in known:
+            parse(known[variable], text.strip())
+        else:
+            unknown.append(variable)
+    return unknown
 
 
 def check(name: str, needed: int, what: str) -> None:

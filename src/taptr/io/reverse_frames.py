@@ -18,7 +18,15 @@ from pathlib import Path
 import av
 import numpy as np
 
-from taptr.io.video import _check_source, _image_files, _open_video, _read_images, _reason, rgb
+from taptr.io.video import (
+    _check_source,
+    _image_files,
+    _read_images,
+    _reason,
+    frame_size_check,
+    open_video,
+    rgb,
+)
 
 SEGMENT_FRAMES = 32
 """Decoded frames held at a time: 32 frames of 1080p are 200 MB."""
@@ -57,17 +65,19 @@ def _reversed_video(source: Path, max_frames: int | None, segment: int) -> Itera
     if not stamps:
         raise ValueError(f"no frames in video {source}")
     seekable = None not in stamps and len(set(stamps)) == len(stamps)
+    same_size = frame_size_check(source)
     for end in range(len(stamps), 0, -segment):
         start = max(0, end - segment)
         frames = _segment_by_seeking(source, stamps[start:end]) if seekable else None
         if frames is None:  # no timestamps, or the seek landed elsewhere
             frames = _segment_from_start(source, start, end)
-        yield from reversed(frames)
+        for offset, frame in enumerate(reversed(frames)):
+            yield same_size(frame, end - 1 - offset)
 
 
 def _presentation_times(source: Path) -> list[int | None]:
     """Every frame's timestamp in display order, from the packets alone."""
-    with _open_video(source) as container:
+    with open_video(source) as container:
         stream = container.streams.video[0]
         try:
             stamps = [p.pts for p in container.demux(stream) if p.size]
@@ -84,7 +94,7 @@ def _segment_by_seeking(source: Path, wanted: list[int | None]) -> list[np.ndarr
     assert first is not None and last is not None
     keep = set(wanted)
     found: list[np.ndarray] = []
-    with _open_video(source) as container:
+    with open_video(source) as container:
         stream = container.streams.video[0]
         try:
             container.seek(first, stream=stream, backward=True, any_frame=False)
@@ -99,7 +109,7 @@ def _segment_by_seeking(source: Path, wanted: list[int | None]) -> list[np.ndarr
 
 
 def _segment_from_start(source: Path, start: int, end: int) -> list[np.ndarray]:
-    with _open_video(source) as container:
+    with open_video(source) as container:
         stream = container.streams.video[0]
         try:
             frames = [rgb(f) for f in islice(container.decode(stream), start, end)]

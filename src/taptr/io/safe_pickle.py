@@ -34,6 +34,8 @@ except ImportError:  # pragma: no cover - numpy 1.x
     from numpy.core.multiarray import scalar as _numpy_scalar  # type: ignore[no-redef]
 
 from taptr.io import limits
+from taptr.io.file_kind import kind, require_file
+from taptr.io.nesting import check_nesting
 
 BUDGET_FACTOR = 3
 """Bytes a pickle may allocate per byte of file (protocol 2 copies array data twice)."""
@@ -302,7 +304,9 @@ def load_pickle_stream(stream: BinaryIO) -> Any:
     stream.seek(start)
     reader = cast(BinaryIO, _BoundedReader(stream, size))
     unpickler = RestrictedUnpickler(reader, BUDGET_FACTOR * size + BUDGET_SLACK)
-    return _plain(unpickler.load())
+    value = unpickler.load()
+    check_nesting(value, "the pickle")  # _plain and every later reader recurse into it
+    return _plain(value)
 
 
 def _plain(value: Any) -> Any:
@@ -353,8 +357,9 @@ def load_checked(stream: BinaryIO, path: Path, what: str) -> Any:
 def checked_file(path: str | os.PathLike[str]) -> Path:
     """``path`` as a `Path`, once it is known to be a file within the ``file_bytes`` limit."""
     path = Path(path)
-    if not path.is_file():
+    if kind(path, "dataset file") is None:
         raise FileNotFoundError(f"no such file: {path}")
+    require_file(path, "dataset file")  # a folder, FIFO or device is named, never opened
     limits.check("file_bytes", path.stat().st_size, f"{path}: {path.stat().st_size:,} bytes")
     return path
 

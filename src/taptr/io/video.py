@@ -7,11 +7,20 @@ store portrait videos as rotated landscape). Writing makes H.264 mp4 through PyA
 FFmpeg, because OpenCV's pip wheel cannot encode H.264.
 
 Problems with the input are reported as one-line errors that name the file:
-`FileNotFoundError` when it is missing and `ValueError` when it is unsupported, unreadable,
-has no frames, or would exceed a limit of `taptr.io.limits` (``video_bytes`` for a whole video,
-``image_pixels`` for one frame; both checked from headers before decoding). A file that
-decodes to fewer or more frames than its container states gives a warning with both
-numbers.
+`FileNotFoundError` when it is missing and `ValueError` when it is not a regular file (a FIFO,
+a device: refused before opening, `taptr.io.file_kind`), unsupported, unreadable, has no
+frames, changes its frame size mid-stream, or would exceed a limit of `taptr.io.limits`.
+
+Every path (`video_info`, `iter_frames`, `read_video`, `taptr.io.reverse_frames`) opens
+files the same guarded way: the frame size the header states is checked against
+``image_pixels`` before anything is decoded (a header that states no size is refused, not
+decoded by content), FFmpeg's decoder is told the same bound (``max_pixels``) so that no
+later frame can be larger, and the decoded bytes are counted against ``video_bytes``
+(checked from the header when it states a frame count). Streamed reading (`iter_frames`)
+holds one frame at a time, so ``video_bytes`` bounds it only when its variable is set.
+Frames of image folders are read by `taptr.io.image_guard` (PNG and JPEG, header first).
+A file that decodes to fewer or more frames than its container states gives a warning
+with both numbers.
 """
 
 from __future__ import annotations
@@ -19,7 +28,7 @@ from __future__ import annotations
 import os
 import re
 import warnings
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from fractions import Fraction
 from itertools import chain, islice
@@ -31,7 +40,8 @@ import numpy as np
 
 from taptr.io import limits
 from taptr.io.atomic import atomic_path
-from taptr.io.image_guard import image_size
+from taptr.io.file_kind import is_regular_file, require_file, require_file_or_folder
+from taptr.io.image_guard import image_size, read_image
 
 VIDEO_SUFFIXES = (".mp4", ".webm", ".avi", ".gif", ".mov", ".mkv")
 """File suffixes read through PyAV."""
@@ -77,9 +87,9 @@ def video_info(path: str | os.PathLike[str]) -> VideoInfo:
     source = _check_source(path)
     if source.is_dir():
         images = _image_files(source)
-        height, width = _read_image(images[0]).shape[:2]
+        height, width = image_size(images[0], str(images[0]))
         return VideoInfo(num_frames=len(images), fps=None, height=height, width=width)
-    with _open_video(source) as container:
+    with open_video(source) as container:
         stream = container.streams.video[0]
         first = _first(source, _decode(source, container, stride=1))
         height, width = first.shape[:2]
@@ -113,14 +123,50 @@ def iter_frames(
         FileNotFoundError: the path does not exist.
         ValueError: the suffix is unsupported, a file is unreadable, or there are no frames.
     """
-    if stride < 1:
-        raise ValueError(f"stride must be >= 1, got {stride}")
-    if max_frames is not None and max_frames < 1:
-        raise ValueError(f"max_frames must be >= 1, got {max_frames}")
+    _check_counts(stride, max_frames)
     source = _check_source(path)
+    bounded = limits.is_set("video_bytes")  # streamed reading holds one frame at a time
+    if bounded:
+        _bounded(source, stride, max_frames)
     if source.is_dir():
-        return _read_images(_image_files(source)[::stride][:max_frames])
-    return _iter_video(source, stride, max_frames)
+        frames = _read_images(_image_files(source)[::stride][:max_frames])
+    else:
+        frames = _iter_video(source, stride, max_frames)
+    return _counted(source, frames) if bounded else frames
+
+
+def _check_counts(stride: int, max_frames: int | None) -> None:
+    for name, value in (("stride", stride), ("max_frames", max_frames)):
+        if value is not None and (isinstance(value, bool) or not isinstance(value, int)):
+            raise ValueError(f"{name} must be a whole number, got {value!r:.40}")
+        if value is not None and not 1 <= value <= MAX_COUNT:
+            raise ValueError(f"{name} must lie in [1, {MAX_COUNT:,}], got {value}")
+
+
+def _bounded(source: Path, stride: int, max_frames: int | None) -> int:
+    """Checks the decoded bytes the headers declare against ``video_bytes``; returns them."""
+    declared, height, width = _declared_size(source)
+    if declared is None:
+        return 0
+    count = -(-declared // stride)
+    count = count if max_frames is None else min(count, max_frames)
+    what = f"{source}: {count} frames of {width}x{height}"
+    limits.check("video_bytes", count * height * width * 3, what)
+    return count * height * width * 3
+
+
+def _counted(source: Path, frames: Iterator[np.ndarray]) -> Iterator[np.ndarray]:
+    """``frames``, refusing to go on once their bytes exceed ``video_bytes``.
+
+    The header can understate the count: what is really decoded is counted.
+    """
+    total = 0
+    for count, frame in enumerate(frames):
+        total += frame.nbytes
+        if total > limits.limit("video_bytes"):
+            what = f"{source}: more than {count} frames of {frame.shape[1]}x{frame.shape[0]}"
+            limits.check("video_bytes", total, what)
+        yield frame
 
 
 def read_video(
@@ -141,27 +187,15 @@ def read_video(
             ``video_bytes`` limit of `taptr.io.limits` (checked from the header before decoding
             when the container states its frame count, and while decoding in any case).
     """
-    frames = iter_frames(path, stride=stride, max_frames=max_frames)
-    source = Path(path)
-    declared, height, width = _declared_size(source)
-    if declared is not None:
-        count = (
-            -(-declared // stride)
-            if max_frames is None
-            else min(-(-declared // stride), max_frames)
-        )
-        what = f"{source}: {count} frames of {width}x{height}"
-        limits.check("video_bytes", count * height * width * 3, what)
-    decoded: list[np.ndarray] = []
-    total = 0
-    for frame in frames:
-        # the header can understate the count: keep counting what is really decoded
-        total += frame.nbytes
-        if total > limits.limit("video_bytes"):
-            what = f"{source}: more than {len(decoded)} frames of {frame.shape[1]}x{frame.shape[0]}"
-            limits.check("video_bytes", total, what)
-        decoded.append(frame)
-    return np.stack(decoded)
+    _check_counts(stride, max_frames)
+    source = _check_source(path)
+    _bounded(source, stride, max_frames)
+    if source.is_dir():
+        frames = _read_images(_image_files(source)[::stride][:max_frames])
+    else:
+        frames = _iter_video(source, stride, max_frames)
+    decoded = list(_counted(source, frames))
+    return np.stack(decoded)  # every frame was checked against the first one's size
 
 
 def write_video(path: str | os.PathLike[str], frames: Iterable[np.ndarray], fps: float) -> Path:
@@ -238,18 +272,14 @@ def _declared_size(source: Path) -> tuple[int | None, int, int]:
     """
     if source.is_dir():
         images = _image_files(source)
-        size = image_size(images[0], str(images[0]))
-        return (len(images), *size) if size else (None, 0, 0)
-    with _open_video(source) as container:
+        return (len(images), *image_size(images[0], str(images[0])))
+    with open_video(source) as container:
         stream = container.streams.video[0]
-        context = stream.codec_context  # None when FFmpeg has no decoder for the stream
-        height, width = (context.height, context.width) if context else (0, 0)
-        limits.check("image_pixels", height * width, f"{source}: {width}x{height} frames")
-        return stream.frames or None, height, width
+        return stream.frames or None, stream.codec_context.height, stream.codec_context.width
 
 
 def _iter_video(source: Path, stride: int, max_frames: int | None) -> Iterator[np.ndarray]:
-    with _open_video(source) as container:
+    with open_video(source) as container:
         declared = container.streams.video[0].frames
         frames = _decode(source, container, stride)
         yield _first(source, frames)
@@ -264,14 +294,24 @@ def _iter_video(source: Path, stride: int, max_frames: int | None) -> Iterator[n
             f"{source}: decoded {count} frames where the container declares {expected}"
             + (f" (every {stride}th of {declared})" if stride > 1 else "")
             + "; the file may be truncated or damaged",
+            TruncatedVideoWarning,
             stacklevel=2,
         )
 
 
+class TruncatedVideoWarning(UserWarning):
+    """A video decoded to another number of frames than its container states."""
+
+
+MAX_COUNT = 2**40
+"""Largest ``stride`` or ``max_frames`` accepted: far beyond any video, within every index."""
+
+
 def _check_source(path: str | os.PathLike[str]) -> Path:
-    source = Path(path)
-    if not source.exists():
-        raise FileNotFoundError(f"video not found: {source}")
+    try:
+        source = require_file_or_folder(path, "video")
+    except FileNotFoundError:
+        raise FileNotFoundError(f"video not found: {path}") from None
     if source.is_file() and source.suffix.lower() not in VIDEO_SUFFIXES:
         supported = ", ".join(VIDEO_SUFFIXES)
         raise ValueError(
@@ -282,43 +322,72 @@ def _check_source(path: str | os.PathLike[str]) -> Path:
 
 
 def _image_files(folder: Path) -> list[Path]:
-    images = [p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file()]
+    """The frames of an image folder in natural order; other entries are ignored.
+
+    Raises:
+        ValueError: no frame, or a frame name that is a FIFO, device or socket (it would
+            block or never end; a folder named like a frame is refused too).
+    """
+    images = [p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES]
+    for image in images:
+        if not is_regular_file(image):
+            require_file_or_folder(image, "frame")  # names FIFOs, devices, sockets
+            raise ValueError(f"frame {image} is a folder, not an image file")
     if not images:
         raise ValueError(f"no png/jpg images in folder {folder}")
     return sorted(images, key=lambda p: natural_sort_key(p.name))
 
 
-def _read_image(path: Path) -> np.ndarray:
-    image_size(path, str(path))  # refuses decompression bombs before OpenCV decodes them
-    # IMREAD_COLOR turns grey and RGBA images into 3 channels, so every frame is (H, W, 3).
-    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if image is None:
-        raise ValueError(f"cannot read image {path}")
-    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
-
-
 def _read_images(images: list[Path]) -> Iterator[np.ndarray]:
     size = None
     for image_path in images:
-        image = _read_image(image_path)
-        size = size or image.shape
-        if image.shape != size:
-            raise ValueError(
-                f"image {image_path} is {image.shape[1]}x{image.shape[0]}, "
-                f"the first frame is {size[1]}x{size[0]}"
-            )
+        # header first, then decoded by the library that read it (taptr.io.image_guard)
+        image = read_image(image_path, str(image_path), size=size)
+        size = size or image.shape[:2]
         yield image
 
 
-def _open_video(path: Path) -> av.container.InputContainer:
+def open_video(path: str | os.PathLike[str]) -> av.container.InputContainer:
+    """Opens a video file and checks its first video stream's header before any decoding.
+
+    The guarded way to open a video for any reader that decodes it with PyAV: the path
+    must be a regular file (a FIFO would block), the stated frame size must be known and
+    within ``image_pixels``, and the decoder is then told that bound (FFmpeg's
+    ``max_pixels``), so no frame decoded later can exceed it.
+
+    Raises:
+        FileNotFoundError: nothing at ``path``.
+        ValueError: not a regular file, not a readable video, no video stream, no stated
+            frame size, or frames above the ``image_pixels`` limit.
+    """
+    path = require_file(path, "video")
     try:
         container = av.open(str(path))
     except av.error.FFmpegError as error:
         raise ValueError(f"cannot read video {path}: {_reason(error)}") from error
-    if not container.streams.video:
+    try:
+        _check_header(path, container)
+    except BaseException:
         container.close()
-        raise ValueError(f"no video stream in {path}")
+        raise
     return container
+
+
+def _check_header(path: Path, container: av.container.InputContainer) -> None:
+    if not container.streams.video:
+        raise ValueError(f"no video stream in {path}")
+    stream = container.streams.video[0]
+    context = stream.codec_context  # None when FFmpeg has no decoder for the stream
+    if context is None:
+        raise ValueError(f"cannot read video {path}: FFmpeg has no decoder for its stream")
+    height, width = context.height, context.width
+    if height < 1 or width < 1:
+        raise ValueError(
+            f"cannot read video {path}: its header states no frame size (refusing to "
+            "decode it to find out)"
+        )
+    limits.check("image_pixels", height * width, f"{path}: {width}x{height} frames")
+    context.options = {"max_pixels": str(limits.limit("image_pixels"))}
 
 
 def _decode(
@@ -326,13 +395,35 @@ def _decode(
 ) -> Iterator[np.ndarray]:
     stream = container.streams.video[0]
     stream.thread_type = "AUTO"  # frame threading: decoding is the slow part of reading
+    same_size = frame_size_check(path)
     try:
         # Skipped frames must still be decoded (later frames depend on them), but are never
         # converted to RGB.
-        for frame in islice(container.decode(stream), 0, None, stride):
-            yield rgb(frame)
+        for index, frame in enumerate(islice(container.decode(stream), 0, None, stride)):
+            yield same_size(rgb(frame), index * stride)
     except av.error.FFmpegError as error:
         raise ValueError(f"cannot decode video {path}: {_reason(error)}") from error
+
+
+def frame_size_check(path: Path) -> Callable[[np.ndarray, int], np.ndarray]:
+    """A check that every frame it is given has the first one's size; names the frame.
+
+    Frames of another size mid-stream (a spliced file) would fail later with numpy's
+    message and no file name; tracking needs one size per video.
+    """
+    first: list[tuple[int, ...]] = []
+
+    def check(frame: np.ndarray, index: int) -> np.ndarray:
+        if not first:
+            first.append(frame.shape)
+        elif frame.shape != first[0]:
+            raise ValueError(
+                f"{path}: frame {index} is {frame.shape[1]}x{frame.shape[0]}, the first "
+                f"frame read is {first[0][1]}x{first[0][0]}; re-encode the video at one size"
+            )
+        return frame
+
+    return check
 
 
 def rgb(frame: av.VideoFrame) -> np.ndarray:

@@ -227,8 +227,10 @@ def _edit_tab() -> _EditTab:
         editor = _region_editor("Paint the region to edit on the query frame", "edit-region")
         image = gr.Image(
             label="Image to paste",
-            type="numpy",
-            image_mode="RGBA",
+            # a path, not pixels: Gradio only opens the header, and taptr decodes the file
+            # after checking it (taptr.apps.demo.uploads.read_paste_image)
+            type="filepath",
+            image_mode=None,
             sources=["upload"],
             elem_id="paste-image",
         )

@@ -165,7 +165,7 @@ class Callbacks:
         self,
         video: LoadedVideo | None,
         region: dict[str, Any] | None,
-        image: np.ndarray | None,
+        image: np.ndarray | str | None,
         frame: int,
         opacity: float,
         progress: gr.Progress = gr.Progress(track_tqdm=True),  # noqa: B008 (Gradio's idiom)

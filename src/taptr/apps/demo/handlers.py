@@ -24,7 +24,7 @@ import numpy as np
 
 from taptr.api.predictor import Predictor
 from taptr.apps.demo.settings import Limits
-from taptr.apps.demo.uploads import DemoError, LoadedVideo
+from taptr.apps.demo.uploads import DemoError, LoadedVideo, read_paste_image
 from taptr.apps.editing import overlay_region, sample_region_queries
 from taptr.io.tracks import save_tracks_csv, save_tracks_npz
 from taptr.io.video import write_video
@@ -167,7 +167,7 @@ def edit_video(
     predictor: Predictor,
     video: LoadedVideo,
     mask: np.ndarray,
-    image: np.ndarray | None,
+    image: np.ndarray | str | os.PathLike[str] | None,
     query_frame: int,
     *,
     folder: str | os.PathLike[str],
@@ -185,7 +185,8 @@ def edit_video(
         predictor: the tracker.
         video: the video, as loaded by `taptr.apps.demo.uploads.load_video`.
         mask: (H, W) bool region painted on ``query_frame``.
-        image: (h, w, 3) RGB or (h, w, 4) RGBA uint8 image to paste, or (h, w) grey.
+        image: (h, w, 3) RGB or (h, w, 4) RGBA uint8 image to paste, or (h, w) grey; or
+            the uploaded file, read by `taptr.apps.demo.uploads.read_paste_image`.
         query_frame: the frame t the region was painted on.
         folder: where ``edited.mp4`` is written (created if missing).
         limits: the point limit for the region's samples.
@@ -207,6 +208,8 @@ def edit_video(
         raise DemoError("no region painted: paint over the query frame with the brush")
     if not 0.0 <= opacity <= 1.0:
         raise DemoError(f"opacity must lie in [0, 1], got {opacity}")
+    if isinstance(image, (str, os.PathLike)):  # an upload: read header first (uploads.py)
+        image = read_paste_image(image)
     image = np.asarray(image, dtype=np.uint8)
     if image.ndim == 2:
         image = np.repeat(image[..., None], 3, axis=2)

@@ -24,6 +24,7 @@ from taptr.api.inputs import grid_queries
 from taptr.apps.demo.settings import Limits
 from taptr.apps.editing import sample_region_queries
 from taptr.data.sample_video import make_sample_clip
+from taptr.io.image_guard import read_image_channels
 from taptr.io.video import read_video, video_info, write_video
 from taptr.viz.draw import default_radius, draw_frame, point_colors
 
@@ -122,6 +123,28 @@ SAMPLES: Mapping[str, Callable[[Path], Path]] = {
 Both are the package's own procedural clip (`taptr.data.sample_video`): licence-clean and
 made on the spot, so nothing ships and nothing is downloaded.
 """
+
+
+def read_paste_image(path: str | os.PathLike[str]) -> np.ndarray:
+    """The uploaded image to paste, read the guarded way: header first, within the limits.
+
+    Returns:
+        (h, w, 3) RGB or (h, w, 4) RGBA uint8.
+
+    Raises:
+        DemoError: not an image taptr reads, or above the ``image_pixels`` limit (the
+            message does not show the server's temporary path).
+    """
+    try:
+        image = read_image_channels(path, "the image to paste")
+    except (ValueError, FileNotFoundError) as error:
+        raise DemoError(str(error)) from None
+    if image.ndim == 2:  # grey, 8 or 16 bits or float: shown as grey RGB
+        grey = image if image.dtype == np.uint8 else np.clip(image / 257, 0, 255)
+        return np.repeat(grey.astype(np.uint8)[..., None], 3, axis=2)
+    if image.shape[2] == 2:  # grey + alpha
+        return np.concatenate([np.repeat(image[..., :1], 3, axis=2), image[..., 1:]], axis=2)
+    return image
 
 
 def add_point(points: Sequence[Point], point: Point, limits: Limits) -> list[Point]:
