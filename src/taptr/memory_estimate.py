@@ -16,6 +16,8 @@ h × w the model's input size, S = Σ_l ⌈h/s_l⌉·⌈w/s_l⌉ the encoder tok
                    corners, the decoder's activations and its FFN)
     trajectories = 4 · N · T · (11 · D + 3)  (per-frame positions and visibility of every
                    layer, kept until the end)
+    history      = 4 · N · T_h · (C + 1)  (TAPTRv3 only: each point's content and visibility
+                   on the T_h held frames, T_h = min(T, the history limit))
     frames       = 3 · H · W_v · (T if the whole video is held else the window + a segment)
                    + 4 · 3 · H · W_v · W · 2 (a window of frames as floats while resizing)
     total        = OVERHEAD + the above
@@ -52,9 +54,10 @@ STRIDES = (4, 8, 16, 32)
 FEATURE_SHARE = 0.75
 """Fraction of the window's frame tensors alive at the peak (fitted)."""
 
-BACKBONE_FLOATS = {"resnet50": 160, "convnet": 12}
-"""Floats per input pixel of one frame's trunk activations (fitted; ResNet-50 keeps 256
-channels at a quarter of the resolution, several at once)."""
+BACKBONE_FLOATS = {"resnet50": 160, "resnet18": 40, "convnet": 12}
+"""Floats per input pixel of one frame's trunk activations (fitted for ResNet-50, which
+keeps 256 channels at a quarter of the resolution, several at once; ResNet-18's 64
+channels there scaled from it)."""
 
 POINT_CHANNELS = 12
 """Per point and window frame, activations of the decoder of C floats each (fitted)."""
@@ -129,6 +132,7 @@ def estimate_tracking(
     frame_size: tuple[int, int],
     whole_video: bool,
     backward: bool = False,
+    history_frames: int | None = None,
 ) -> Estimate:
     """Estimates the peak memory of tracking (see the module's formula).
 
@@ -141,6 +145,7 @@ def estimate_tracking(
         whole_video: whether the video is held in memory (``Predictor.track``) or
             streamed (``taptr track`` on a file that states its length).
         backward: whether a time-reversed pass runs too (a segment of frames held).
+        history_frames: TAPTRv3's history limit (0: the whole video; None: the config's).
     """
     height, width = input_size
     window = config.window_size
@@ -161,6 +166,10 @@ def estimate_tracking(
         "frames": 3 * frame_pixels * held + 4 * 3 * frame_pixels * min(window, num_frames) * 2,
         "overhead": OVERHEAD,
     }
+    if config.version == 3:
+        limit = config.history_frames if history_frames is None else history_frames
+        kept = min(num_frames, limit) if limit else num_frames
+        parts["history"] = 4 * num_points * kept * (channels + 1)
     return Estimate(parts)
 
 

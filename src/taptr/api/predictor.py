@@ -28,7 +28,7 @@ from taptr.api.context import with_context
 from taptr.api.inputs import grid_queries, query_tensor, video_tensor
 from taptr.api.queries import model_queries, on_own_frames
 from taptr.api.resize import resize_frames
-from taptr.api.support import with_support
+from taptr.api.support import GRID_POINTS, LOCAL_OFFSETS, with_support
 from taptr.config import SUPPORT_KINDS
 from taptr.geometry import normalized_to_pixels
 from taptr.memory_estimate import check_memory, estimate_tracking
@@ -249,7 +249,7 @@ class Predictor:
         """
         if self.model.config is None:
             return
-        points = max(num_points, self.context_points)
+        points = self.model_points(num_points)
         estimate = estimate_tracking(
             self.model.config,
             input_size=self.input_size,
@@ -258,6 +258,7 @@ class Predictor:
             frame_size=frame_size,
             whole_video=False,  # the caller holds the video already
             backward=backward,
+            history_frames=self.history_frames,
         )
         what = f"tracking {points:,} points through {num_frames:,} frames at {self.input_size}"
         knobs = "use a smaller input_size, fewer points or fewer frames"
@@ -285,6 +286,15 @@ class Predictor:
         if scheme == "local_and_grid" and local_points > LOCAL_SUPPORT_BUDGET + 36:
             return "grid"
         return scheme
+
+    def model_points(self, num_queries: int) -> int:
+        """How many points the model tracks for ``num_queries`` user points (support included)."""
+        scheme = self.support_scheme(num_queries)
+        if scheme == "random":
+            return max(num_queries, self.context_points)
+        if scheme == "local_and_grid":
+            return num_queries * (1 + len(LOCAL_OFFSETS)) + GRID_POINTS
+        return num_queries + (GRID_POINTS if scheme == "grid" else 0)
 
     def with_support(
         self, queries: QuerySet, num_frames: int | None, scheme: str | None = None

@@ -30,6 +30,7 @@ LOCAL_SPAN = 24.0
 """Half the side of the local pattern, in 256 × 256 pixels."""
 LOCAL_SIDE = 8
 GRID_SIDE = 6
+GRID_POINTS = GRID_SIDE * GRID_SIDE
 GRID_MARGIN = 16
 GRID_SEED = 42
 PREFIX_FRAMES = 12
@@ -63,7 +64,7 @@ def grid_start_frames(rng: np.random.RandomState) -> np.ndarray:
     A video shorter than a draw never starts that point, which then influences nothing
     (the official code requires 12 frames), so streams of unknown length agree with it.
     """
-    return rng.randint(0, PREFIX_FRAMES, GRID_SIDE * GRID_SIDE).astype(np.int64)
+    return rng.randint(0, PREFIX_FRAMES, GRID_POINTS).astype(np.int64)
 
 
 def with_support(queries: QuerySet, scheme: str, grid_starts: np.ndarray | None = None) -> QuerySet:

@@ -42,7 +42,7 @@ def check_run_memory(
     config = predictor.model.config
     if config is None:
         return
-    points = max(num_points, predictor.context_points)
+    points = predictor.model_points(num_points)
     height, width = predictor.input_size
     estimate = estimate_tracking(
         config,
@@ -52,6 +52,7 @@ def check_run_memory(
         frame_size=frame_size,
         whole_video=whole_video,
         backward=bool(getattr(args, "backward", False)),
+        history_frames=predictor.history_frames,
     )
     what = f"tracking {points:,} points through {num_frames:,} frames at {height}x{width}"
     knobs = (
