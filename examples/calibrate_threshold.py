@@ -22,7 +22,11 @@ from pathlib import Path
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     """The command line."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--checkpoint", help="checkpoint file or model name (default: bundled)")
+    parser.add_argument(
+        "--checkpoint",
+        help="checkpoint file or model name (default: the paper's weights taptrv2-official, "
+        "non-commercial licence; offline, the bundled taptr-small-synthetic)",
+    )
     parser.add_argument("--dataset", default="kubric", help="davis, kinetics, ..., kubric")
     parser.add_argument("--root", help="labelled set (default: generated sample clips)")
     parser.add_argument("--metric", choices=("aj", "oa"), default="aj")

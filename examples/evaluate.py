@@ -27,7 +27,11 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--dataset", default="kubric", help="davis, kinetics, ..., kubric")
     parser.add_argument("--root", help="dataset file or folder (default: a generated set)")
     parser.add_argument("--mode", choices=("first", "strided"), default="first")
-    parser.add_argument("--checkpoint", help="checkpoint file or model name (default: bundled)")
+    parser.add_argument(
+        "--checkpoint",
+        help="checkpoint file or model name (default: the paper's weights taptrv2-official, "
+        "non-commercial licence; offline, the bundled taptr-small-synthetic)",
+    )
     parser.add_argument("--device", help="cpu, cuda, mps (default: cuda if available)")
     parser.add_argument("--max-videos", type=int, help="score only the first N videos")
     parser.add_argument("--videos", type=int, default=3, help="size of the generated set")

@@ -38,7 +38,11 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--grid", type=int, default=5, help="N×N points per grid (default 5)")
     parser.add_argument("--refresh", type=int, default=0, help="renew lost points every K frames")
     parser.add_argument("--max-frames", type=int, default=300, help="stop after this many frames")
-    parser.add_argument("--checkpoint", help="checkpoint file or model name (default: bundled)")
+    parser.add_argument(
+        "--checkpoint",
+        help="checkpoint file or model name (default: the paper's weights taptrv2-official, "
+        "non-commercial licence; offline, the bundled taptr-small-synthetic)",
+    )
     parser.add_argument("--device", help="cpu, cuda, mps (default: cuda if available)")
     parser.add_argument("--out", default="outputs/online.mp4", help="drawn stream (mp4)")
     parser.add_argument("--show", action="store_true", help="show the stream in a window")

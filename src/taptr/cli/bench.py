@@ -74,6 +74,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Runs the cases and prints the table."""
+    check_bench_arguments(args)
     from taptr.apps.benchmark import (
         BenchConfig,
         compare,
@@ -84,7 +85,6 @@ def run(args: argparse.Namespace) -> int:
         write_json,
     )
 
-    check_bench_arguments(args)
     command = "taptr " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     rows, cases = [], []
     for preset in args.preset:
@@ -140,9 +140,8 @@ def run(args: argparse.Namespace) -> int:
 
 def check_bench_arguments(args: argparse.Namespace) -> None:
     """Checks the options before the first measured process starts."""
-    from taptr.api.inputs import check_num_points
+    from taptr.query_checks import check_num_points
 
-    check_device(args.device)
     check_input_size(args.size, "--size", minimum=32)  # tiny presets are timed on small frames
     check_at_least(args.frames, 1, "--frames")
     check_at_least(args.threads, 1, "--threads")
@@ -151,3 +150,4 @@ def check_bench_arguments(args: argparse.Namespace) -> None:
         check_num_points(points, f"--points {points}")
     if args.json:
         check_output_file(args.json, "--json")
+    check_device(args.device)  # imports torch for a GPU: after the cheap checks

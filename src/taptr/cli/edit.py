@@ -20,6 +20,7 @@ if TYPE_CHECKING:
     import numpy as np
 
     from taptr.api.predictor import Predictor
+    from taptr.io.video import VideoInfo
 
 logger = logging.getLogger(__name__)
 
@@ -61,30 +62,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Tracks the region and writes the edited video."""
-    from taptr.api.inputs import check_num_points
-    from taptr.api.online import FrameCountError
-    from taptr.apps.editing import overlay_region, read_mask, sample_region_queries
-    from taptr.io.video import read_video, video_info, write_video
+    from taptr.apps.editing import overlay_region
+    from taptr.io.video import read_video, write_video
 
-    # Everything that can fail on the arguments fails here, before the long run.
-    check_output_file(args.out, suffixes=(".mp4",))
-    check_model_arguments(args)
-    check_at_least(args.query_frame, 0, "--query-frame")
-    check_at_least(args.stride, 1, "--stride")
-    if not 0 <= args.opacity <= 1:
-        raise ValueError(f"--opacity must lie in [0, 1], got {args.opacity}")
-    info = video_info(args.video)
-    mask = read_mask(args.mask, name="--mask", size=(info.height, info.width))
-    overlay = (
-        read_video(args.overlay)[0] if Path(args.overlay).is_dir() else _read_overlay(args.overlay)
-    )
-    queries = sample_region_queries(mask, args.query_frame, stride=args.stride)
-    check_num_points(len(queries), f"--mask {args.mask} with --stride {args.stride}")
-    if info.num_frames is not None:
-        declared = min(info.num_frames, args.max_frames or info.num_frames)
-        if not args.query_frame < declared:
-            raise ValueError(f"--query-frame {args.query_frame} outside [0, {declared})")
+    info, mask, overlay, queries = _checked_inputs(args)
     predictor = load_predictor(args)
+    from taptr.api.online import FrameCountError  # imports torch: after every cheap check
+
     if info.num_frames is not None:
         # frame by frame; frames before a later query frame come from a backward read
         try:
@@ -111,6 +95,38 @@ def run(args: argparse.Namespace) -> int:
     path = write_video(args.out, edited, info.fps or 24.0)
     print(f"tracked {len(queries)} region points; wrote {path}")
     return 0
+
+
+def _checked_inputs(
+    args: argparse.Namespace,
+) -> tuple[VideoInfo, np.ndarray, np.ndarray, np.ndarray]:
+    """Checks every argument and input file, before torch and the model load.
+
+    Returns:
+        The video's header, the region mask, the overlay image and the region's queries.
+    """
+    from taptr.apps.editing import read_mask, sample_region_queries
+    from taptr.io.video import read_video, video_info
+    from taptr.query_checks import check_num_points
+
+    check_output_file(args.out, suffixes=(".mp4",))
+    check_model_arguments(args)
+    check_at_least(args.query_frame, 0, "--query-frame")
+    check_at_least(args.stride, 1, "--stride")
+    if not 0 <= args.opacity <= 1:
+        raise ValueError(f"--opacity must lie in [0, 1], got {args.opacity}")
+    info = video_info(args.video)
+    mask = read_mask(args.mask, name="--mask", size=(info.height, info.width))
+    overlay = (
+        read_video(args.overlay)[0] if Path(args.overlay).is_dir() else _read_overlay(args.overlay)
+    )
+    queries = sample_region_queries(mask, args.query_frame, stride=args.stride)
+    check_num_points(len(queries), f"--mask {args.mask} with --stride {args.stride}")
+    if info.num_frames is not None:
+        declared = min(info.num_frames, args.max_frames or info.num_frames)
+        if not args.query_frame < declared:
+            raise ValueError(f"--query-frame {args.query_frame} outside [0, {declared})")
+    return info, mask, overlay, queries
 
 
 def _edited_frames(

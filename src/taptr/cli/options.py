@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import tempfile
 from collections.abc import Sequence
 from pathlib import Path
@@ -32,26 +33,27 @@ def add_device_argument(parser: argparse.ArgumentParser, default: str | None = N
 
 
 def check_device(device: str | None, flag: str = "--device") -> None:
-    """Raises a ValueError unless ``device`` names a device this machine has (None: auto)."""
+    """Raises a ValueError unless ``device`` names a device this machine has (None: auto).
+
+    Torch is imported only to ask about a GPU: a typo or ``cpu`` costs no import.
+    """
     if device is None:
+        return
+    if not re.fullmatch(r"(cpu|cuda|mps)(:\d+)?", device):
+        raise ValueError(f"{flag} {device}: not a device; use cpu, cuda, cuda:N or mps")
+    kind, _, index = device.partition(":")
+    if kind == "cpu":
         return
     import torch
 
-    try:
-        parsed = torch.device(device)
-    except (RuntimeError, ValueError):
-        raise ValueError(f"{flag} {device}: not a device; use cpu, cuda, cuda:N or mps") from None
-    if parsed.type == "cuda":
+    if kind == "cuda":
         count = torch.cuda.device_count() if torch.cuda.is_available() else 0
         if count == 0:
             raise ValueError(f"{flag} {device}: this machine has no usable CUDA GPU; use cpu")
-        if parsed.index is not None and parsed.index >= count:
+        if index and int(index) >= count:
             raise ValueError(f"{flag} {device}: this machine has {count} GPU(s), cuda:0..")
-    elif parsed.type == "mps":
-        if not torch.backends.mps.is_available():
-            raise ValueError(f"{flag} {device}: MPS is not available on this machine; use cpu")
-    elif parsed.type != "cpu":
-        raise ValueError(f"{flag} {device}: taptr runs on cpu, cuda or mps")
+    elif not torch.backends.mps.is_available():
+        raise ValueError(f"{flag} {device}: MPS is not available on this machine; use cpu")
 
 
 def check_input_size(
