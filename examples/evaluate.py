@@ -58,6 +58,12 @@ def generate_set(root: Path, videos: int, frames: int) -> None:
 def main(argv: Sequence[str] | None = None) -> int:
     """Scores taptr and the two baselines."""
     args = parse_args(argv)
+    with tempfile.TemporaryDirectory(prefix="taptr-example-") as scratch:
+        return run(args, Path(scratch))
+
+
+def run(args: argparse.Namespace, scratch: Path) -> int:
+    """`main` with a scratch folder for the generated labelled clips, removed afterwards."""
     from taptr.eval.baselines import LucasKanadeTracker, StaticTracker
     from taptr.eval.datasets import open_dataset
     from taptr.eval.metrics import mean_over_videos
@@ -67,7 +73,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     root = args.root
     if root is None:
-        root = str(Path(tempfile.mkdtemp()) / "labelled")
+        root = str(scratch / "labelled")
         generate_set(Path(root), args.videos, args.frames)
         print(f"generated {args.videos} labelled sample clips in {root}")
     trackers = {

@@ -111,9 +111,8 @@ def check_checkpoint_name(checkpoint: str | None, flag: str = "--checkpoint") ->
 
 def load_predictor(args: argparse.Namespace) -> Predictor:
     """The predictor the model arguments describe (``--device`` is checked first)."""
-    from taptr.api.predictor import Predictor, autocast_type
-
     check_device(args.device)
+    from taptr.api.predictor import Predictor, autocast_type
 
     size = tuple(args.input_size) if args.input_size else None
     predictor = Predictor.from_pretrained(
