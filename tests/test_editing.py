@@ -169,3 +169,32 @@ def test_shared_apple_mask_gives_queries_on_the_apple():
     queries = sample_region_queries(mask, 0, stride=16, max_points=200)
     assert 20 < len(queries) <= 200
     assert mask[queries[:, 2].astype(int), queries[:, 1].astype(int)].all()
+
+
+def test_edit_twice_writes_the_same_file(tmp_path):
+    """`taptr edit` is reproducible: two runs give the same bytes (issue 30, item 3)."""
+    import torch
+
+    import taptr
+    from taptr.cli.main import main
+    from taptr.io.video import write_video
+
+    rng = np.random.default_rng(3)
+    texture = rng.integers(0, 256, (20, 24, 3), np.uint8)
+    frames = np.full((10, 48, 64, 3), 70, np.uint8)
+    for t in range(10):
+        frames[t, 12 + t : 32 + t, 8 + 2 * t : 32 + 2 * t] = texture
+    clip = write_video(tmp_path / "clip.mp4", frames, fps=10)
+    mask = np.zeros((48, 64), np.uint8)
+    mask[12:32, 8:32] = 255
+    cv2.imwrite(str(tmp_path / "mask.png"), mask)
+    logo = np.zeros((16, 16, 4), np.uint8)
+    logo[::2, ::2] = (0, 0, 255, 200)  # a semi-transparent checkerboard: every blend shows
+    cv2.imwrite(str(tmp_path / "logo.png"), logo)
+    torch.manual_seed(0)
+    checkpoint = taptr.save_checkpoint(taptr.build_model("tiny"), tmp_path / "tiny.pth")
+    argv = ["edit", str(clip), "--mask", str(tmp_path / "mask.png"), "--stride", "3"]
+    argv += ["--overlay", str(tmp_path / "logo.png"), "--checkpoint", str(checkpoint)]
+    for name in ("one.mp4", "two.mp4"):
+        assert main([*argv, "--out", str(tmp_path / name)]) == 0
+    assert (tmp_path / "one.mp4").read_bytes() == (tmp_path / "two.mp4").read_bytes()

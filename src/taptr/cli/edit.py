@@ -74,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
         try:
             edited = _edited_frames(args, predictor, queries, mask, overlay, info.num_frames)
             path = write_video(args.out, edited, info.fps or 24.0)
-            print(f"tracked {len(queries)} region points; wrote {path}")
+            print(f"tracked {len(queries)} region point{_s(len(queries))}; wrote {path}")
             return 0
         except FrameCountError as error:  # the container's frame count was wrong
             logger.warning("%s: %s; editing it in memory instead", args.video, error)
@@ -93,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
         opacity=args.opacity,
     )
     path = write_video(args.out, edited, info.fps or 24.0)
-    print(f"tracked {len(queries)} region points; wrote {path}")
+    print(f"tracked {len(queries)} region point{_s(len(queries))}; wrote {path}")
     return 0
 
 
@@ -182,3 +182,8 @@ def _read_overlay(path: str) -> np.ndarray:
         raise ValueError(f"--overlay {path}: {image.dtype} pixels; save it with 8 bits a channel")
     code = cv2.COLOR_BGRA2RGBA if image.shape[2] == 4 else cv2.COLOR_BGR2RGB
     return cv2.cvtColor(image, code)
+
+
+def _s(count: int) -> str:
+    """The plural ending of a count: "1 point", "2 points"."""
+    return "" if count == 1 else "s"
