@@ -93,3 +93,12 @@ def test_mistakes_are_reported_before_torch_is_imported(files, tmp_path):
     assert not heavy, f"torch was imported before the error of {heavy[0]}"
     created = [name for name in ("run", "an", "ev", "x") if Path(files["tmp"], name).exists()]
     assert not created and not list(tmp_path.iterdir()), "a failed command left files"
+
+
+def test_demo_refuses_port_zero_before_loading(capsys):
+    pytest.importorskip("gradio")
+    from taptr.cli.main import main
+
+    # Gradio accepted port 0, then failed to reach itself: "ConnectError ... a bug in taptr"
+    assert main(["demo", "--port", "0", "--checkpoint", "tiny"]) == 2
+    assert "--port must lie in [1, 65535], got 0" in capsys.readouterr().err

@@ -72,6 +72,8 @@ def run(args: argparse.Namespace) -> int:
     from taptr.apps.demo.settings import Limits
 
     check_model_arguments(args)
+    if not 1 <= args.port <= 65535:  # Gradio takes 0 and then fails to reach itself
+        raise ValueError(f"--port must lie in [1, 65535], got {args.port}")
     if not args.max_disk_gb > 0:
         raise ValueError(f"--max-disk-gb must be positive, got {args.max_disk_gb}")
     limits = Limits(
