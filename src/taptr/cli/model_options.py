@@ -27,6 +27,9 @@ CHECKPOINT_HELP = (
 )
 """Help of every ``--checkpoint`` option that loads a model (`taptr.hub.DEFAULT_MODEL`)."""
 
+CHECKPOINT_SUFFIXES = (".pth", ".pt", ".ckpt", ".bin", ".tar", ".pkl", ".safetensors")
+"""File suffixes that make a missing ``--checkpoint`` a missing file rather than a name."""
+
 KERNEL_CHOICES = ("auto", "measure", "grid_sample", "gather")
 """``--kernel`` choices (`taptr.model.kernel_choice.CHOICES`; here so --help needs no torch)."""
 
@@ -99,13 +102,14 @@ def check_model_arguments(args: argparse.Namespace) -> None:
 def check_checkpoint_name(checkpoint: str | None, flag: str = "--checkpoint") -> None:
     """Raises FileNotFoundError for a ``--checkpoint`` that is written as a missing file.
 
-    Model names never contain a folder or a file suffix, so ``runs/x/best.pth`` or
-    ``taptrv2.pth`` that does not exist is a mistyped or missing file, said at once; any
-    other string is left to the model loader, which lists the names it knows.
+    Model names contain no folder and no checkpoint suffix, so ``runs/x/best.pth`` or
+    ``taptrv2.pth`` that does not exist is a mistyped or missing file, said before torch
+    loads; any other string is left to the model loader, which lists the names it knows.
     """
     if checkpoint is None or Path(checkpoint).exists():
         return
-    if Path(checkpoint).suffix or any(sep in checkpoint for sep in ("/", os.sep)):
+    folder = any(sep in checkpoint for sep in ("/", os.sep))
+    if folder or Path(checkpoint).suffix.lower() in CHECKPOINT_SUFFIXES:
         raise FileNotFoundError(f"{flag} {checkpoint}: file not found")
 
 
