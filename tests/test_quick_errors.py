@@ -21,7 +21,10 @@ from taptr.io.video import write_video
 
 RUNNER = """
 import json, sys
+import taptr.cli.options
 from taptr.cli.main import main
+
+taptr.cli.options._gpu_device_files = lambda: False  # as on a machine without a GPU
 codes, torch_after = [], []
 for argv in json.loads(sys.argv[1]):
     codes.append(main(argv))
@@ -50,6 +53,7 @@ CASES = [
     (["track", "{clip}", "--points", "0 1 2"], r"separated by spaces"),
     (["track", "{clip}", "--grid", "2", "--checkpoint", "nope.pth"], r"nope\.pth: file not"),
     (["track", "{clip}", "--grid", "2", "--device", "cdua"], r"--device cdua: not a device"),
+    (["track", "{clip}", "--grid", "2", "--device", "cuda"], r"--device cuda: .*no usable CUDA"),
     (["track", "{clip}", "--mask", "{tmp}/none.png", "--device", "cpu"], r"--mask .*not found"),
     (["track", "{clip}", "--grid", "2", "--input-size", "9", "9"], r"--input-size 9 9"),
     (["edit", "{tmp}/missing.mp4", "--mask", "m.png", "--overlay", "o.png"], r"video not found"),
