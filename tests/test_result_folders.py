@@ -89,7 +89,7 @@ def test_a_new_run_replaces_the_whole_set_and_keeps_other_files(clip, tmp_path):
     (out / "notes.txt").write_text("mine")
     assert _track(clip, out, "--grid", "3") == 0
     names = sorted(entry.name for entry in out.iterdir())
-    assert names == ["notes.txt", "overlay.mp4", "tracks.csv", "tracks.npz"]
+    assert names == ["notes.txt", "overlay.mp4", "settings.json", "tracks.csv", "tracks.npz"]
     assert not _hidden(tmp_path)
 
 
@@ -187,6 +187,7 @@ def test_out_dot_needs_only_the_folder_itself(clip, tmp_path, monkeypatch):
     assert _track(clip, ".", "--grid", "2") == 0
     assert sorted(entry.name for entry in tmp_path.iterdir()) == [
         "overlay.mp4",
+        "settings.json",
         "tracks.csv",
         "tracks.npz",
     ]
