@@ -68,7 +68,6 @@ def run(args: argparse.Namespace) -> int:
             "taptr demo: error: the demo needs Gradio: pip install 'taptr[demo]'", file=sys.stderr
         )
         return 2
-    from taptr.apps.demo.launch import private_workspace, serve
     from taptr.apps.demo.settings import Limits
 
     check_model_arguments(args)
@@ -88,6 +87,8 @@ def run(args: argparse.Namespace) -> int:
             "on your network",
             file=sys.stderr,
         )
+    from taptr.apps.demo.launch import private_workspace, serve  # Gradio: after the checks
+
     predictor = load_predictor(args)
     model_name = predictor.source or "custom"
     with private_workspace() as workspace:
