@@ -53,6 +53,15 @@ def _hidden(folder) -> list[str]:
     return [entry.name for entry in folder.iterdir() if entry.name.startswith(".")]
 
 
+@pytest.fixture
+def ctrl_c_raises(monkeypatch):
+    """SIGINT raises KeyboardInterrupt, as in a terminal, even when the suite was started in
+    the background, where the shell makes SIGINT ignored."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
+
+
 def _dead_pid() -> int:
     child = subprocess.Popen([sys.executable, "-c", "pass"])
     child.wait()
@@ -64,7 +73,9 @@ def _dead_pid() -> int:
     [("exception", 130), ("sigint", 130), ("sigterm", 143)],
     ids=["keyboard-interrupt", "sigint", "sigterm"],
 )
-def test_interrupted_track_keeps_the_earlier_results(clip, tmp_path, monkeypatch, how, status):
+def test_interrupted_track_keeps_the_earlier_results(
+    clip, tmp_path, monkeypatch, how, status, ctrl_c_raises
+):
     out = tmp_path / "out"
     assert _track(clip, out, "--grid", "2", "--trajectories") == 0
     before = _digest(out)
@@ -124,7 +135,7 @@ def test_result_folder_refuses_a_file(tmp_path):
         pass
 
 
-def test_signals_are_held_back_while_the_set_is_swapped():
+def test_signals_are_held_back_while_the_set_is_swapped(ctrl_c_raises):
     reached_end = False
     with pytest.raises(KeyboardInterrupt), deferred_signals():
         os.kill(os.getpid(), signal.SIGINT)
