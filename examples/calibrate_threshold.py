@@ -22,7 +22,11 @@ from pathlib import Path
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     """The command line."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--checkpoint", help="checkpoint file or model name (default: bundled)")
+    parser.add_argument(
+        "--checkpoint",
+        help="checkpoint file or model name (default: the paper's weights taptrv2-official, "
+        "non-commercial licence; offline, the bundled taptr-small-synthetic)",
+    )
     parser.add_argument("--dataset", default="kubric", help="davis, kinetics, ..., kubric")
     parser.add_argument("--root", help="labelled set (default: generated sample clips)")
     parser.add_argument("--metric", choices=("aj", "oa"), default="aj")
@@ -34,6 +38,12 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
 def main(argv: Sequence[str] | None = None) -> int:
     """Tracks once, scores the thresholds, writes the checkpoint."""
     args = parse_args(argv)
+    with tempfile.TemporaryDirectory(prefix="taptr-example-") as scratch:
+        return run(args, Path(scratch))
+
+
+def run(args: argparse.Namespace, scratch: Path) -> int:
+    """`main` with a scratch folder for the generated labelled clips, removed afterwards."""
     import numpy as np
 
     import taptr
@@ -45,7 +55,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     root = args.root
     if root is None:
-        root = Path(tempfile.mkdtemp()) / "labelled"
+        root = scratch / "labelled"
         for seed in range(args.videos):
             clip = make_sample_clip(num_frames=16, seed=seed)
             grid = np.linspace(20, 235, 5)

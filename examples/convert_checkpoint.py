@@ -33,6 +33,12 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
 def main(argv: Sequence[str] | None = None) -> int:
     """Converts, reloads, compares."""
     args = parse_args(argv)
+    with tempfile.TemporaryDirectory(prefix="taptr-example-") as scratch:
+        return run(args, Path(scratch))
+
+
+def run(args: argparse.Namespace, scratch: Path) -> int:
+    """`main` with a scratch folder for the generated source checkpoint, removed afterwards."""
     import torch
 
     import taptr
@@ -40,7 +46,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     src = args.src
     if src is None:
         torch.manual_seed(0)
-        src = str(Path(tempfile.mkdtemp()) / "tiny.pth")
+        src = str(scratch / "tiny.pth")
         taptr.save_checkpoint(taptr.build_model("tiny"), src)
         print(f"no source given: converting a freshly built tiny model ({src})")
     model = taptr.load_checkpoint(src)

@@ -30,7 +30,11 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--query-frame", type=int, default=0, help="frame the mask was drawn on")
     parser.add_argument("--stride", type=int, default=6, help="pixels between tracked points")
     parser.add_argument("--max-frames", type=int, help="read at most this many frames")
-    parser.add_argument("--checkpoint", help="checkpoint file or model name (default: bundled)")
+    parser.add_argument(
+        "--checkpoint",
+        help="checkpoint file or model name (default: the paper's weights taptrv2-official, "
+        "non-commercial licence; offline, the bundled taptr-small-synthetic)",
+    )
     parser.add_argument("--device", help="cpu, cuda, mps (default: cuda if available)")
     parser.add_argument("--out", default="outputs/edited.mp4", help="output mp4")
     return parser.parse_args(argv)

@@ -27,7 +27,11 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--dataset", default="kubric", help="davis, kinetics, ..., kubric")
     parser.add_argument("--root", help="dataset file or folder (default: a generated set)")
     parser.add_argument("--mode", choices=("first", "strided"), default="first")
-    parser.add_argument("--checkpoint", help="checkpoint file or model name (default: bundled)")
+    parser.add_argument(
+        "--checkpoint",
+        help="checkpoint file or model name (default: the paper's weights taptrv2-official, "
+        "non-commercial licence; offline, the bundled taptr-small-synthetic)",
+    )
     parser.add_argument("--device", help="cpu, cuda, mps (default: cuda if available)")
     parser.add_argument("--max-videos", type=int, help="score only the first N videos")
     parser.add_argument("--videos", type=int, default=3, help="size of the generated set")
@@ -54,6 +58,12 @@ def generate_set(root: Path, videos: int, frames: int) -> None:
 def main(argv: Sequence[str] | None = None) -> int:
     """Scores taptr and the two baselines."""
     args = parse_args(argv)
+    with tempfile.TemporaryDirectory(prefix="taptr-example-") as scratch:
+        return run(args, Path(scratch))
+
+
+def run(args: argparse.Namespace, scratch: Path) -> int:
+    """`main` with a scratch folder for the generated labelled clips, removed afterwards."""
     from taptr.eval.baselines import LucasKanadeTracker, StaticTracker
     from taptr.eval.datasets import open_dataset
     from taptr.eval.metrics import mean_over_videos
@@ -63,7 +73,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     root = args.root
     if root is None:
-        root = str(Path(tempfile.mkdtemp()) / "labelled")
+        root = str(scratch / "labelled")
         generate_set(Path(root), args.videos, args.frames)
         print(f"generated {args.videos} labelled sample clips in {root}")
     trackers = {

@@ -38,15 +38,19 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--grid", type=int, default=5, help="N×N points per grid (default 5)")
     parser.add_argument("--refresh", type=int, default=0, help="renew lost points every K frames")
     parser.add_argument("--max-frames", type=int, default=300, help="stop after this many frames")
-    parser.add_argument("--checkpoint", help="checkpoint file or model name (default: bundled)")
+    parser.add_argument(
+        "--checkpoint",
+        help="checkpoint file or model name (default: the paper's weights taptrv2-official, "
+        "non-commercial licence; offline, the bundled taptr-small-synthetic)",
+    )
     parser.add_argument("--device", help="cpu, cuda, mps (default: cuda if available)")
     parser.add_argument("--out", default="outputs/online.mp4", help="drawn stream (mp4)")
     parser.add_argument("--show", action="store_true", help="show the stream in a window")
     return parser.parse_args(argv)
 
 
-def open_stream(args: argparse.Namespace) -> cv2.VideoCapture:
-    """The camera, or the --video file, or the sample clip when there is no camera."""
+def open_stream(args: argparse.Namespace, scratch: Path) -> cv2.VideoCapture:
+    """The camera, or the --video file, or the sample clip (written to ``scratch``)."""
     import cv2
 
     if args.video is None:
@@ -57,7 +61,7 @@ def open_stream(args: argparse.Namespace) -> cv2.VideoCapture:
         capture.release()
         from taptr.data.sample_video import write_sample_video
 
-        args.video = str(write_sample_video(Path(tempfile.mkdtemp()) / "sample.mp4"))
+        args.video = str(write_sample_video(scratch / "sample.mp4"))
         print(f"no camera {args.camera}: reading the generated sample clip instead")
     capture = cv2.VideoCapture(args.video)
     if not capture.isOpened():
@@ -86,6 +90,12 @@ def grid(size: int, frame: int, height: int, width: int) -> np.ndarray:
 def main(argv: Sequence[str] | None = None) -> int:
     """Streams, tracks, draws."""
     args = parse_args(argv)
+    with tempfile.TemporaryDirectory(prefix="taptr-example-") as scratch:
+        return run(args, Path(scratch))
+
+
+def run(args: argparse.Namespace, scratch: Path) -> int:
+    """`main` with a scratch folder for the sample clip (when there is no camera)."""
     import cv2
 
     import taptr
@@ -94,7 +104,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     predictor = taptr.Predictor.from_pretrained(args.checkpoint, device=args.device)
     online = OnlineTracker(predictor)
-    capture = open_stream(args)
+    capture = open_stream(args, scratch)
     fps = capture.get(cv2.CAP_PROP_FPS) or 24.0
     waiting: dict[int, np.ndarray] = {}  # frames whose tracks are not final yet
     colors: dict[int, np.ndarray] = {}  # point id -> RGB

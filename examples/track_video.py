@@ -26,7 +26,11 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     queries.add_argument("--points", help='queries "t,x,y;t,x,y;..." in pixels')
     queries.add_argument("--grid", type=int, default=6, help="N×N grid on frame 0 (default 6)")
     parser.add_argument("--backward", action="store_true", help="also track before each query")
-    parser.add_argument("--checkpoint", help="checkpoint file or model name (default: bundled)")
+    parser.add_argument(
+        "--checkpoint",
+        help="checkpoint file or model name (default: the paper's weights taptrv2-official, "
+        "non-commercial licence; offline, the bundled taptr-small-synthetic)",
+    )
     parser.add_argument("--device", help="cpu, cuda, mps (default: cuda if available)")
     parser.add_argument("--max-frames", type=int, help="read at most this many frames")
     parser.add_argument("--out", default="outputs/track_video", help="output folder")

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from itertools import combinations
+
+import cv2
 import numpy as np
 import pytest
 
@@ -30,16 +33,38 @@ def _changed(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def test_point_colors_follow_y():
-    positions = np.array([[5.0, 10.0], [30.0, 10.0], [5.0, 20.0], [5.0, 30.0]])
+    positions = np.array([[5.0, 30.0], [30.0, 10.0], [5.0, 10.0], [5.0, 20.0]])
     colors = point_colors(positions)
     assert colors.shape == (4, 3) and colors.dtype == np.uint8
-    np.testing.assert_array_equal(colors[0], [255, 0, 0])  # the topmost point is red
-    np.testing.assert_array_equal(colors[0], colors[1])  # same y, same colour
-    assert len({tuple(c) for c in colors[1:]}) == 3
+    np.testing.assert_array_equal(colors[2], [255, 0, 0])  # the top-left point is red
+    hues = cv2.cvtColor(colors[:, None], cv2.COLOR_RGB2HSV)[:, 0, 0]
+    assert hues[2] < hues[1] < hues[3] < hues[0]  # top to bottom, ties left to right
     # With a fixed range the colours do not depend on the other points.
     fixed = point_colors(positions, y_range=(0, 99))
     np.testing.assert_array_equal(point_colors(positions[2:], y_range=(0, 99)), fixed[2:])
     assert tuple(fixed[0]) != (255, 0, 0)
+
+
+def _lab_distances(colors: np.ndarray) -> list[float]:
+    """CIE76 colour differences (ΔE) of every pair of (N, 3) uint8 RGB colours."""
+    lab = cv2.cvtColor(colors[:, None].astype(np.float32) / 255, cv2.COLOR_RGB2LAB)[:, 0]
+    return [float(np.linalg.norm(lab[i] - lab[j])) for i, j in combinations(range(len(lab)), 2)]
+
+
+@pytest.mark.parametrize(
+    "ys", [[0, 190, 200], [10, 150, 160], [100, 101, 102], [5, 5, 5], [200, 0, 100]]
+)
+def test_three_points_get_clearly_different_colours(ys):
+    # ΔE > 100 between any two; the old rainbow over y gave 12 for y = 0, 190, 200
+    positions = np.column_stack([np.arange(len(ys), dtype=float), ys])
+    assert min(_lab_distances(point_colors(positions))) > 100
+
+
+@pytest.mark.parametrize("count", [2, 4, 5, 6])
+def test_a_few_points_get_far_apart_colours(count):
+    rng = np.random.default_rng(count)
+    positions = rng.uniform(0, 1, (count, 2)) * [640, 3]  # nearly one row of points
+    assert min(_lab_distances(point_colors(positions))) > 45
 
 
 def test_visible_point_is_a_filled_disc_of_its_colour():

@@ -169,3 +169,35 @@ def test_shared_apple_mask_gives_queries_on_the_apple():
     queries = sample_region_queries(mask, 0, stride=16, max_points=200)
     assert 20 < len(queries) <= 200
     assert mask[queries[:, 2].astype(int), queries[:, 1].astype(int)].all()
+
+
+def test_edit_twice_writes_the_same_file(tmp_path):
+    """`taptr edit` is reproducible: two runs give the same bytes (issue 30, item 3)."""
+    import torch
+
+    import taptr
+    from taptr.cli.main import main
+    from taptr.io.video import write_video
+
+    photos = pytest.importorskip("taptr.data.photos")
+    pytest.importorskip("sklearn", reason="the photographs come with scikit-learn")
+    photo = photos.load_builtin_photos("train")[0]
+    # a hand-held camera over a photograph: real texture, which plain noise does not give
+    frames = [
+        cv2.warpAffine(photo, np.array([[1 + 0.01 * t, 0, -3 * t], [0, 1, -2 * t]]), (320, 240))
+        for t in range(12)
+    ]
+    clip = write_video(tmp_path / "clip.mp4", frames, fps=10)
+    mask = np.zeros((240, 320), np.uint8)
+    mask[60:160, 80:220] = 255
+    cv2.imwrite(str(tmp_path / "mask.png"), mask)
+    logo = np.zeros((16, 16, 4), np.uint8)
+    logo[::2, ::2] = (0, 0, 255, 200)  # a semi-transparent checkerboard: every blend shows
+    cv2.imwrite(str(tmp_path / "logo.png"), logo)
+    torch.manual_seed(0)
+    checkpoint = taptr.save_checkpoint(taptr.build_model("tiny"), tmp_path / "tiny.pth")
+    argv = ["edit", str(clip), "--mask", str(tmp_path / "mask.png"), "--stride", "10"]
+    argv += ["--overlay", str(tmp_path / "logo.png"), "--checkpoint", str(checkpoint)]
+    for name in ("one.mp4", "two.mp4"):
+        assert main([*argv, "--out", str(tmp_path / name)]) == 0
+    assert (tmp_path / "one.mp4").read_bytes() == (tmp_path / "two.mp4").read_bytes()

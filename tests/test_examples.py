@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -131,8 +132,14 @@ RUNS = {
 @pytest.mark.parametrize("name", SCRIPTS)
 def test_runs_on_generated_media(name, tmp_path, sample, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)  # nothing lands in the repository
+    scratch = tmp_path / "system-tmp"
+    scratch.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))  # where mkdtemp() would leave things
     threads = torch.get_num_threads()  # scripts are entry points and may set it
     try:
         RUNS[name](tmp_path, sample, capsys)
     finally:
         torch.set_num_threads(threads)
+    # torch keeps its compiler cache there on purpose; anything else is a leftover
+    left = [p.name for p in scratch.iterdir() if not p.name.startswith("torchinductor_")]
+    assert not left, f"{name} left temporary files behind: {left}"

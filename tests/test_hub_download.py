@@ -153,6 +153,9 @@ def test_offline_without_cache_falls_back_and_names_the_reason(monkeypatch, capl
         choice = hub.load_model(None)
     assert choice.name == "taptr-small-synthetic"
     assert "HF_HUB_OFFLINE=1" in choice.notice
+    # huggingface_hub is installed here: the hint does not ask to install it again
+    assert "pip install" not in choice.notice
+    assert choice.notice.endswith("with: hf download HYeungLee/TAPTR-Series taptrv2.pth")
 
 
 def test_missing_huggingface_hub_falls_back(monkeypatch):
@@ -161,6 +164,7 @@ def test_missing_huggingface_hub_falls_back(monkeypatch):
     monkeypatch.setitem(sys.modules, "huggingface_hub", None)
     choice = hub.load_model(None)
     assert "huggingface_hub is not installed" in choice.notice
+    assert "pip install 'taptr[hub]' && hf download" in choice.notice
 
 
 def test_an_explicit_choice_says_nothing(caplog):

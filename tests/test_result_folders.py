@@ -53,6 +53,15 @@ def _hidden(folder) -> list[str]:
     return [entry.name for entry in folder.iterdir() if entry.name.startswith(".")]
 
 
+@pytest.fixture
+def ctrl_c_raises(monkeypatch):
+    """SIGINT raises KeyboardInterrupt, as in a terminal, even when the suite was started in
+    the background, where the shell makes SIGINT ignored."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
+
+
 def _dead_pid() -> int:
     child = subprocess.Popen([sys.executable, "-c", "pass"])
     child.wait()
@@ -64,7 +73,9 @@ def _dead_pid() -> int:
     [("exception", 130), ("sigint", 130), ("sigterm", 143)],
     ids=["keyboard-interrupt", "sigint", "sigterm"],
 )
-def test_interrupted_track_keeps_the_earlier_results(clip, tmp_path, monkeypatch, how, status):
+def test_interrupted_track_keeps_the_earlier_results(
+    clip, tmp_path, monkeypatch, how, status, ctrl_c_raises
+):
     out = tmp_path / "out"
     assert _track(clip, out, "--grid", "2", "--trajectories") == 0
     before = _digest(out)
@@ -89,7 +100,7 @@ def test_a_new_run_replaces_the_whole_set_and_keeps_other_files(clip, tmp_path):
     (out / "notes.txt").write_text("mine")
     assert _track(clip, out, "--grid", "3") == 0
     names = sorted(entry.name for entry in out.iterdir())
-    assert names == ["notes.txt", "overlay.mp4", "tracks.csv", "tracks.npz"]
+    assert names == ["notes.txt", "overlay.mp4", "settings.json", "tracks.csv", "tracks.npz"]
     assert not _hidden(tmp_path)
 
 
@@ -124,7 +135,7 @@ def test_result_folder_refuses_a_file(tmp_path):
         pass
 
 
-def test_signals_are_held_back_while_the_set_is_swapped():
+def test_signals_are_held_back_while_the_set_is_swapped(ctrl_c_raises):
     reached_end = False
     with pytest.raises(KeyboardInterrupt), deferred_signals():
         os.kill(os.getpid(), signal.SIGINT)
@@ -187,6 +198,7 @@ def test_out_dot_needs_only_the_folder_itself(clip, tmp_path, monkeypatch):
     assert _track(clip, ".", "--grid", "2") == 0
     assert sorted(entry.name for entry in tmp_path.iterdir()) == [
         "overlay.mp4",
+        "settings.json",
         "tracks.csv",
         "tracks.npz",
     ]

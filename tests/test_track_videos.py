@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -68,6 +71,46 @@ def test_several_videos_one_folder_each_and_a_rerun_skips_them(clips, checkpoint
     (out / "c" / "overlay.mp4").unlink()  # as a crash before the end would leave it
     assert main([*args, "--out", str(out)]) == 0
     assert "3 videos: 1 tracked, 2 already done, 0 failed" in capsys.readouterr().out
+
+
+def test_a_rerun_with_other_settings_tracks_again_and_overwrite_forces_it(
+    clips, checkpoint, tmp_path, capsys
+):
+    out = tmp_path / "runs"
+    videos = [str(clips / "b.mp4"), str(clips / "c.mp4")]
+    base = ["track", *videos, "--max-frames", "5", "--checkpoint", str(checkpoint)]
+    base += ["--out", str(out)]
+
+    def summary(extra: list[str]) -> str:
+        assert main([*base, *extra]) == 0
+        return capsys.readouterr().out
+
+    assert "2 videos: 2 tracked, 0 already done" in summary(["--grid", "2"])
+    settings = json.loads((out / "b" / "settings.json").read_text())
+    assert settings["queries"] == {"grid": 2, "query_frame": 0}
+    assert settings["model"] == str(checkpoint) and settings["model_sha256"]
+    assert "2 videos: 0 tracked, 2 already done" in summary(["--grid", "2"])
+    printed = summary(["--grid", "3"])  # other queries: the old results are stale
+    assert "2 videos: 2 tracked, 0 already done" in printed
+    assert "was made with other settings; tracking it again" in printed
+    assert load_tracks_npz(out / "c" / "tracks.npz").tracks.shape == (5, 9, 2)
+    assert "2 tracked" in summary(["--grid", "3", "--backward"])
+    assert load_tracks_npz(out / "c" / "tracks.npz").metadata["backward"] is True
+    assert "0 tracked, 2 already done" in summary(["--grid", "3", "--backward"])
+    assert "2 tracked, 0 already done" in summary(["--grid", "3", "--backward", "--overwrite"])
+    (out / "b" / "settings.json").unlink()  # a folder from a taptr that did not record them
+    assert "1 tracked, 1 already done" in summary(["--grid", "3", "--backward"])
+
+
+def test_the_done_line_lists_every_file_and_counts_in_words(clips, checkpoint, tmp_path, capsys):
+    out = tmp_path / "one"
+    args = ["track", str(clips / "c.mp4"), "--points", "0,16,22", "--max-frames", "1"]
+    assert main([*args, "--trajectories", "--checkpoint", str(checkpoint), "--out", str(out)]) == 0
+    line = capsys.readouterr().out.strip().splitlines()[-1]
+    assert line.startswith("tracked 1 point through 1 frame; wrote ")
+    written = line.split("; wrote ")[1].split(", ")
+    assert sorted(Path(name).name for name in written) == sorted(p.name for p in out.iterdir())
+    assert "trajectories.png" in line and "settings.json" in line
 
 
 def test_a_failing_video_does_not_stop_the_others(clips, checkpoint, tmp_path, capsys):

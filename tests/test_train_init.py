@@ -89,7 +89,7 @@ def test_init_from_a_mismatched_checkpoint_lists_the_keys(tmp_path):
 
 def test_train_command_errors_are_one_line(tmp_path, capsys):
     assert cli_main(["train", "preset=small", f"data.root={tmp_path / 'none'}"]) == 2
-    assert "dataset root not found" in capsys.readouterr().err
+    assert f"data.root {tmp_path / 'none'}: dataset folder not found" in capsys.readouterr().err
     assert cli_main(["train", "--out", str(tmp_path), "--resume"]) == 2
     assert "no checkpoint to resume from" in capsys.readouterr().err
     assert cli_main(["train", "--config", str(tmp_path / "x.toml")]) == 2

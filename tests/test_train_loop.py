@@ -236,3 +236,47 @@ def test_a_v3_model_learns_with_its_recipe(data, tmp_path):
     assert not torch.equal(watched["long-temporal"], before["long-temporal"])
     assert not torch.equal(watched["similarity"], before["similarity"])
     assert torch.equal(watched["rotary"], before["rotary"])  # a fixed table
+
+
+def test_a_run_that_fails_before_its_first_checkpoint_leaves_nothing(data, tmp_path, capsys):
+    empty = tmp_path / "empty"  # exists, holds no sequence: found only once the run started
+    empty.mkdir()
+    base = ["train", "preset=small", "model.preset=tiny", f"data.root={empty}", "data.val_root="]
+    assert cli_main([*base, f"out_dir={tmp_path / 'new'}"]) == 2
+    assert "no sequence" in capsys.readouterr().err
+    assert not (tmp_path / "new").exists()  # config.json and the folder itself are gone
+    (tmp_path / "old").mkdir()
+    (tmp_path / "old" / "notes.txt").write_text("mine")
+    assert cli_main([*base, f"out_dir={tmp_path / 'old'}"]) == 2
+    assert [p.name for p in (tmp_path / "old").iterdir()] == ["notes.txt"]
+
+
+def test_a_failed_run_with_a_checkpoint_is_kept_and_says_so(data, tmp_path, monkeypatch, capsys):
+    def diverging(*args, **kwargs):
+        raise KeyboardInterrupt  # Ctrl-C after the first checkpoint
+
+    out = tmp_path / "run"
+    argv = [
+        "train",
+        "preset=small",
+        "model.preset=tiny",
+        f"data.root={data / 'train'}",
+        "data.val_root=",
+        "data.frame_size=[64,64]",
+        "data.num_points=24",
+        "data.num_workers=0",
+        "steps=3",
+        "checkpoint_every=1",
+        f"out_dir={out}",
+    ]
+    real = loop._optimizer_step
+    calls = {"n": 0}
+
+    def interrupted(*args, **kwargs):
+        calls["n"] += 1
+        return diverging() if calls["n"] == 2 else real(*args, **kwargs)
+
+    monkeypatch.setattr(loop, "_optimizer_step", interrupted)
+    assert cli_main(argv) == 130
+    assert (out / "checkpoint.pt").is_file() and (out / "config.json").is_file()
+    assert f"kept {out}: 'taptr train --resume --out {out}' continues" in capsys.readouterr().err

@@ -29,6 +29,7 @@ Nothing is downloaded at import. ``HF_ENDPOINT`` and ``HF_HUB_OFFLINE`` are read
 from __future__ import annotations
 
 import hashlib
+import importlib.util
 import logging
 import os
 import re
@@ -360,13 +361,17 @@ def _published_path(name: str, cache_dir: str | os.PathLike[str] | None) -> Path
 
 
 def fallback_notice(reason: str) -> str:
-    """The one line said when the default model falls back to the bundled one."""
+    """The one line said when the default model falls back to the bundled one.
+
+    It asks for ``pip install 'taptr[hub]'`` only when ``huggingface_hub`` is missing.
+    """
     entry = WEIGHTS[DEFAULT_MODEL]
+    install = "" if importlib.util.find_spec("huggingface_hub") else "pip install 'taptr[hub]' && "
     return (
         f"the paper's weights ({DEFAULT_MODEL}) are not available ({reason}); using the "
         f"bundled {FALLBACK_MODEL}, trained on synthetic videos: its tracks on real "
-        f"footage will be rough. Get the paper's weights with: pip install 'taptr[hub]' "
-        f"&& hf download {entry.repo_id} {entry.filename}"
+        f"footage will be rough. Get the paper's weights with: {install}"
+        f"hf download {entry.repo_id} {entry.filename}"
     )
 
 

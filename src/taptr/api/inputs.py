@@ -13,15 +13,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from taptr.io.limits import LIMITS, limit
-
-MAX_POINTS_ENV = LIMITS["points"].variable
-"""Environment variable that raises the most query points per call (read at every call).
-
-The default, ``LIMITS["points"].default`` (100,000, ten times the 10k-point benchmark),
-keeps a call within the memory of ordinary machines: each point costs memory in every
-window of the decoder and in the results.
-"""
+# re-exported: the point limit is part of this module's interface
+from taptr.query_checks import MAX_POINTS_ENV as MAX_POINTS_ENV
+from taptr.query_checks import check_num_points as check_num_points
+from taptr.query_checks import check_query_values
+from taptr.query_checks import max_points as max_points
 
 RESULT_BYTES_PER_POINT_FRAME = 16
 """Bytes of the result per point and frame: float32 (x, y), logit and visibility (padded)."""
@@ -94,22 +90,7 @@ def query_tensor(
     check_num_points(q.shape[1])
     if num_frames is not None:
         check_result_memory(batch, num_frames, q.shape[1])
-    if not bool(torch.isfinite(q).all()):
-        raise ValueError("queries contain NaN or infinite values")
-    t, x, y = q.unbind(-1)
-    if bool((t != t.round()).any()):
-        raise ValueError("query frames t must be whole frame indices")
-    end = float("inf") if num_frames is None else num_frames
-    if q.shape[1] and (float(t.min()) < 0 or float(t.max()) >= end):
-        raise ValueError(f"query frame t outside [0, {end}) (got {int(t.min())}..{int(t.max())})")
-    # pixel centres sit at integers, so the image area spans [-0.5, size - 0.5]
-    bad_x = bool(((x < -0.5) | (x > width - 0.5)).any())
-    bad_y = bool(((y < -0.5) | (y > height - 0.5)).any())
-    if bad_x or bad_y:
-        raise ValueError(
-            f"query positions outside the {width}x{height} frame: x must lie in "
-            f"[-0.5, {width - 0.5}] and y in [-0.5, {height - 0.5}] (pixel centres at integers)"
-        )
+    check_query_values(q.numpy(), num_frames, height, width)
     return q.float()
 
 
@@ -133,27 +114,6 @@ def grid_queries(
     ys = (torch.arange(grid_size, dtype=torch.float32) + 0.5) * height / grid_size - 0.5
     gy, gx = torch.meshgrid(ys, xs, indexing="ij")
     return torch.stack((torch.full_like(gx, float(frame)), gx, gy), dim=-1).view(-1, 3)
-
-
-def max_points() -> int:
-    """The most points per call: 100,000, or the value of `MAX_POINTS_ENV` when set."""
-    return limit("points")
-
-
-def check_num_points(count: int, what: str = "queries") -> None:
-    """Raises a ValueError, saying how to raise the limit, when ``count`` > `max_points`.
-
-    Args:
-        count: number of points asked for.
-        what: what asked for them, for the message (``"--grid 1000"``, a file name, ...).
-    """
-    limit = max_points()
-    if count > limit:
-        raise ValueError(
-            f"{what}: {count:,} points, more than the limit of {limit:,} per call; track "
-            f"them in batches, or set the environment variable {MAX_POINTS_ENV}={count} "
-            "if this machine has the memory"
-        )
 
 
 def check_result_memory(batch: int, num_frames: int, num_points: int) -> None:

@@ -169,9 +169,10 @@ class Predictor:
     ) -> Predictor:
         """A predictor for a checkpoint file or a model name.
 
-        None gives the default model: the paper's weights (``taptrv2-official``, from the
-        Hugging Face cache or downloaded once), else the bundled ``taptr-small-synthetic``
-        with one warning (also kept in ``notice``). Without an explicit ``visibility_threshold``,
+        None gives the default model: the paper's weights (``taptrv2-official``, IDEA
+        License 1.0, non-commercial; from the Hugging Face cache or downloaded once), else
+        the bundled ``taptr-small-synthetic`` (Apache-2.0) with one warning (also kept in
+        ``notice``). Without an explicit ``visibility_threshold``,
         a threshold stored in the file by ``taptr calibrate`` is used (0.5 when there is none).
         """
         from taptr.hub import load_model

@@ -53,19 +53,21 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run_attention(args: argparse.Namespace) -> int:
     """Runs the attention analysis and writes the JSON and the PNG."""
-    from taptr.api.inputs import grid_queries
-    from taptr.apps.attention_analysis import (
-        analyze_attention,
-        attention_statistics,
-        draw_attention,
-    )
-    from taptr.io.video import read_video, write_image
+    from taptr.io.video import read_video, video_info, write_image
 
     check_model_arguments(args)
     check_at_least(args.grid, 1, "--grid")
     check_output_folder(args.out)
     if args.radius is not None and args.radius <= 0:
         raise ValueError("--radius must be positive")
+    video_info(args.video)  # a missing or unreadable video fails before torch loads
+    from taptr.api.inputs import grid_queries
+    from taptr.apps.attention_analysis import (
+        analyze_attention,
+        attention_statistics,
+        draw_attention,
+    )
+
     predictor = load_predictor(args)
     video = read_video(args.video, max_frames=args.max_frames)
     if not 0 <= args.query_frame < video.shape[0] - 1:

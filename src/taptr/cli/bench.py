@@ -84,6 +84,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Runs the cases and prints the table."""
+    check_bench_arguments(args)
     from taptr.apps.benchmark import (
         BenchConfig,
         compare,
@@ -96,7 +97,6 @@ def run(args: argparse.Namespace) -> int:
     )
     from taptr.config import get_config
 
-    check_bench_arguments(args)
     command = "taptr " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     rows, cases = [], []
     cases_to_run = [
@@ -169,10 +169,9 @@ def run(args: argparse.Namespace) -> int:
 
 def check_bench_arguments(args: argparse.Namespace) -> None:
     """Checks the options before the first measured process starts."""
-    from taptr.api.inputs import check_num_points
     from taptr.config import PRESETS
+    from taptr.query_checks import check_num_points
 
-    check_device(args.device)
     if args.size is not None:
         check_input_size(args.size, "--size", minimum=32)  # tiny presets: small frames
     unknown = [preset for preset in args.preset if preset not in PRESETS]
@@ -188,3 +187,4 @@ def check_bench_arguments(args: argparse.Namespace) -> None:
         check_num_points(points, f"--points {points}")
     if args.json:
         check_output_file(args.json, "--json")
+    check_device(args.device)  # imports torch for a GPU: after the cheap checks

@@ -6,6 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
+from taptr.cli.model_options import CHECKPOINT_HELP, check_checkpoint_name
 from taptr.cli.options import (
     add_device_argument,
     check_at_least,
@@ -37,7 +38,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument(
         "--checkpoint",
-        help="checkpoint file or model name (default: the bundled taptr-small-synthetic model)",
+        help=CHECKPOINT_HELP,
     )
     parser.add_argument("--dataset", required=True, choices=DATASETS, help="labelled set")
     parser.add_argument(
@@ -68,6 +69,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Calibrates, prints the scores and writes the checkpoint."""
+    check_at_least(args.max_videos, 1, "--max-videos")
+    check_output_file(args.out)
+    check_input_path(args.root, "--root")
+    check_checkpoint_name(args.checkpoint)
+    if args.json:
+        check_output_file(args.json, "--json")
+    check_device(args.device)  # imports torch for a GPU: after the cheap checks
     from taptr.api.predictor import Predictor
     from taptr.eval.calibrate import (
         DEFAULT_THRESHOLDS,
@@ -77,12 +85,6 @@ def run(args: argparse.Namespace) -> int:
     )
     from taptr.eval.datasets import open_dataset
 
-    check_at_least(args.max_videos, 1, "--max-videos")
-    check_device(args.device)
-    check_output_file(args.out)
-    check_input_path(args.root, "--root")
-    if args.json:
-        check_output_file(args.json, "--json")
     thresholds = tuple(args.thresholds) if args.thresholds else DEFAULT_THRESHOLDS
     predictor = Predictor.from_pretrained(args.checkpoint, device=args.device)
     predictions = predict_videos(

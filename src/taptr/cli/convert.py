@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 from taptr.cli.options import check_output_file
 
@@ -23,9 +24,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Converts and reports what was written."""
+    check_output_file(args.dst, "DST")
+    if not Path(args.src).is_file():
+        raise FileNotFoundError(f"checkpoint not found: {args.src}")
     from taptr.checkpoint import load_checkpoint, read_visibility_threshold, save_checkpoint
 
-    check_output_file(args.dst, "DST")
     model = load_checkpoint(args.src)
     threshold = read_visibility_threshold(args.src)  # a calibrated threshold travels along
     path = save_checkpoint(model, args.dst, half=args.half, visibility_threshold=threshold)

@@ -68,10 +68,11 @@ def run(args: argparse.Namespace) -> int:
             "taptr demo: error: the demo needs Gradio: pip install 'taptr[demo]'", file=sys.stderr
         )
         return 2
-    from taptr.apps.demo.launch import private_workspace, serve
     from taptr.apps.demo.settings import Limits
 
     check_model_arguments(args)
+    if not 1 <= args.port <= 65535:  # Gradio takes 0 and then fails to reach itself
+        raise ValueError(f"--port must lie in [1, 65535], got {args.port}")
     if not args.max_disk_gb > 0:
         raise ValueError(f"--max-disk-gb must be positive, got {args.max_disk_gb}")
     limits = Limits(
@@ -86,6 +87,8 @@ def run(args: argparse.Namespace) -> int:
             "on your network",
             file=sys.stderr,
         )
+    from taptr.apps.demo.launch import private_workspace, serve  # Gradio: after the checks
+
     predictor = load_predictor(args)
     model_name = predictor.source or "custom"
     with private_workspace() as workspace:

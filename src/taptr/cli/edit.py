@@ -21,6 +21,7 @@ if TYPE_CHECKING:
     import numpy as np
 
     from taptr.api.predictor import Predictor
+    from taptr.io.video import VideoInfo
 
 logger = logging.getLogger(__name__)
 
@@ -62,12 +63,61 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Tracks the region and writes the edited video."""
-    from taptr.api.inputs import check_num_points
-    from taptr.api.online import FrameCountError
-    from taptr.apps.editing import overlay_region, read_mask, sample_region_queries
-    from taptr.io.video import read_video, video_info, write_video
+    from taptr.apps.editing import overlay_region
+    from taptr.io.video import read_video, write_video
 
-    # Everything that can fail on the arguments fails here, before the long run.
+    info, mask, overlay, queries = _checked_inputs(args)
+    predictor = load_predictor(args)
+    from taptr.api.online import FrameCountError  # imports torch: after every cheap check
+
+    if info.num_frames is not None:
+        check_run_memory(
+            args,
+            predictor,
+            num_frames=min(info.num_frames, args.max_frames or info.num_frames),
+            num_points=len(queries),
+            frame_size=(info.height, info.width),
+            whole_video=False,
+        )
+        # frame by frame; frames before a later query frame come from a backward read
+        try:
+            edited = _edited_frames(args, predictor, queries, mask, overlay, info.num_frames)
+            path = write_video(args.out, edited, info.fps or 24.0)
+            print(f"tracked {len(queries)} region point{_s(len(queries))}; wrote {path}")
+            return 0
+        except FrameCountError as error:  # the container's frame count was wrong
+            logger.warning("%s: %s; editing it in memory instead", args.video, error)
+    video = read_video(args.video, max_frames=args.max_frames)
+    num_frames = video.shape[0]
+    if not args.query_frame < num_frames:
+        raise ValueError(f"--query-frame {args.query_frame} outside [0, {num_frames})")
+    result = predictor.track(video, queries, backward=True, progress=True)
+    edited = overlay_region(
+        video,
+        overlay,
+        mask,
+        result.tracks[0].numpy(),
+        result.visibility[0].numpy(),
+        args.query_frame,
+        opacity=args.opacity,
+    )
+    path = write_video(args.out, edited, info.fps or 24.0)
+    print(f"tracked {len(queries)} region point{_s(len(queries))}; wrote {path}")
+    return 0
+
+
+def _checked_inputs(
+    args: argparse.Namespace,
+) -> tuple[VideoInfo, np.ndarray, np.ndarray, np.ndarray]:
+    """Checks every argument and input file, before torch and the model load.
+
+    Returns:
+        The video's header, the region mask, the overlay image and the region's queries.
+    """
+    from taptr.apps.editing import read_mask, sample_region_queries
+    from taptr.io.video import read_video, video_info
+    from taptr.query_checks import check_num_points
+
     check_output_file(args.out, suffixes=(".mp4",))
     check_model_arguments(args)
     check_at_least(args.query_frame, 0, "--query-frame")
@@ -87,41 +137,7 @@ def run(args: argparse.Namespace) -> int:
         declared = min(info.num_frames, args.max_frames or info.num_frames)
         if not args.query_frame < declared:
             raise ValueError(f"--query-frame {args.query_frame} outside [0, {declared})")
-    predictor = load_predictor(args)
-    if info.num_frames is not None:
-        check_run_memory(
-            args,
-            predictor,
-            num_frames=min(info.num_frames, args.max_frames or info.num_frames),
-            num_points=len(queries),
-            frame_size=(info.height, info.width),
-            whole_video=False,
-        )
-        # frame by frame; frames before a later query frame come from a backward read
-        try:
-            edited = _edited_frames(args, predictor, queries, mask, overlay, info.num_frames)
-            path = write_video(args.out, edited, info.fps or 24.0)
-            print(f"tracked {len(queries)} region points; wrote {path}")
-            return 0
-        except FrameCountError as error:  # the container's frame count was wrong
-            logger.warning("%s: %s; editing it in memory instead", args.video, error)
-    video = read_video(args.video, max_frames=args.max_frames)
-    num_frames = video.shape[0]
-    if not args.query_frame < num_frames:
-        raise ValueError(f"--query-frame {args.query_frame} outside [0, {num_frames})")
-    result = predictor.track(video, queries, backward=True, progress=True)
-    edited = overlay_region(
-        video,
-        overlay,
-        mask,
-        result.tracks[0].numpy(),
-        result.visibility[0].numpy(),
-        args.query_frame,
-        opacity=args.opacity,
-    )
-    path = write_video(args.out, edited, info.fps or 24.0)
-    print(f"tracked {len(queries)} region points; wrote {path}")
-    return 0
+    return info, mask, overlay, queries
 
 
 def _edited_frames(
@@ -177,3 +193,8 @@ def _read_overlay(path: str) -> np.ndarray:
     if image.ndim != 3 or image.shape[2] not in (3, 4) or image.dtype != np.uint8:
         raise ValueError(f"--overlay {path}: not an RGB or RGBA image with 8 bits a channel")
     return image
+
+
+def _s(count: int) -> str:
+    """The plural ending of a count: "1 point", "2 points"."""
+    return "" if count == 1 else "s"

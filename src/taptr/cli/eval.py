@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import pickle
 
+from taptr.cli.model_options import CHECKPOINT_HELP
 from taptr.cli.options import (
     add_device_argument,
     check_at_least,
@@ -67,9 +68,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument(
         "--checkpoint",
-        help="model checkpoint or name for --tracker taptr (default: the paper's weights "
-        "taptrv2-official, else the bundled model with a warning; required by --protocol "
-        "official)",
+        help="for --tracker taptr, and required by --protocol official: a " + CHECKPOINT_HELP,
     )
     parser.add_argument(
         "--context-points",

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import time
 
+from taptr.cli.model_options import CHECKPOINT_HELP, check_checkpoint_name
 from taptr.cli.options import check_at_least, check_input_size, check_output_folder
 
 
@@ -25,11 +26,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--format", required=True, choices=("onnx", "torchscript"))
     parser.add_argument("--out", required=True, help="output folder")
-    parser.add_argument(
-        "--checkpoint",
-        default=None,
-        help="checkpoint file or model name (default: the bundled taptr-small-synthetic model)",
-    )
+    parser.add_argument("--checkpoint", default=None, help=CHECKPOINT_HELP)
     parser.add_argument(
         "--input-size",
         type=int,
@@ -63,6 +60,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Exports, then optionally checks parity and speed."""
+    check_output_folder(args.out)
+    check_input_size(args.input_size)
+    for flag in ("check_frames", "check_points", "repeats", "threads"):
+        check_at_least(getattr(args, flag), 1, "--" + flag.replace("_", "-"))
+    check_checkpoint_name(args.checkpoint)
     import torch
 
     from taptr.export.graphs import export_model
@@ -70,10 +72,6 @@ def run(args: argparse.Namespace) -> int:
     from taptr.export.verify import compare
     from taptr.hub import resolve_model
 
-    check_output_folder(args.out)
-    check_input_size(args.input_size)
-    for flag in ("check_frames", "check_points", "repeats", "threads"):
-        check_at_least(getattr(args, flag), 1, "--" + flag.replace("_", "-"))
     if args.threads:
         torch.set_num_threads(args.threads)
     model = resolve_model(args.checkpoint)

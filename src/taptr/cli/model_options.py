@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import os
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 from taptr.cli.options import (
@@ -18,6 +20,16 @@ from taptr.types import AUTOCAST_TYPES
 if TYPE_CHECKING:
     from taptr.api.predictor import Predictor
 
+CHECKPOINT_HELP = (
+    "checkpoint file or model name (default: the paper's weights taptrv2-official, IDEA "
+    "License 1.0, non-commercial, from the Hugging Face cache or downloaded once; without "
+    "them, the bundled taptr-small-synthetic, Apache-2.0, with a warning)"
+)
+"""Help of every ``--checkpoint`` option that loads a model (`taptr.hub.DEFAULT_MODEL`)."""
+
+CHECKPOINT_SUFFIXES = (".pth", ".pt", ".ckpt", ".bin", ".tar", ".pkl", ".safetensors")
+"""File suffixes that make a missing ``--checkpoint`` a missing file rather than a name."""
+
 KERNEL_CHOICES = ("auto", "measure", "grid_sample", "gather")
 """``--kernel`` choices (`taptr.model.kernel_choice.CHOICES`; here so --help needs no torch)."""
 
@@ -27,13 +39,7 @@ SUPPORT_CHOICES = ("auto", "random", "local_and_grid", "grid", "none")
 
 def add_model_arguments(parser: argparse.ArgumentParser, max_frames: int | None = None) -> None:
     """Options shared by the commands that run a model (``max_frames``: its default)."""
-    parser.add_argument(
-        "--checkpoint",
-        default=None,
-        help="checkpoint file or model name (default: the paper's weights taptrv2-official "
-        "from the Hugging Face cache or downloaded once; without network, the bundled "
-        "taptr-small-synthetic, with a warning)",
-    )
+    parser.add_argument("--checkpoint", default=None, help=CHECKPOINT_HELP)
     add_device_argument(parser)
     parser.add_argument(
         "--context-points",
@@ -102,8 +108,11 @@ def add_model_arguments(parser: argparse.ArgumentParser, max_frames: int | None 
 
 
 def check_model_arguments(args: argparse.Namespace) -> None:
-    """Checks the options of `add_model_arguments` before any file is read."""
-    check_device(args.device)
+    """Checks the options of `add_model_arguments` before any file is read, without torch.
+
+    ``--device`` is checked by `load_predictor`, after the cheaper checks of the command:
+    asking about a GPU imports torch, which takes seconds.
+    """
     check_input_size(args.input_size)
     if args.context_points is not None:
         check_at_least(args.context_points, 0, "--context-points")
@@ -112,10 +121,26 @@ def check_model_arguments(args: argparse.Namespace) -> None:
         if args.history_frames == 1:
             raise ValueError("--history-frames must be 0 (the whole video) or at least 2")
     check_at_least(args.max_frames, 1, "--max-frames")
+    check_checkpoint_name(args.checkpoint)
+
+
+def check_checkpoint_name(checkpoint: str | None, flag: str = "--checkpoint") -> None:
+    """Raises FileNotFoundError for a ``--checkpoint`` that is written as a missing file.
+
+    Model names contain no folder and no checkpoint suffix, so ``runs/x/best.pth`` or
+    ``taptrv2.pth`` that does not exist is a mistyped or missing file, said before torch
+    loads; any other string is left to the model loader, which lists the names it knows.
+    """
+    if checkpoint is None or Path(checkpoint).exists():
+        return
+    folder = any(sep in checkpoint for sep in ("/", os.sep))
+    if folder or Path(checkpoint).suffix.lower() in CHECKPOINT_SUFFIXES:
+        raise FileNotFoundError(f"{flag} {checkpoint}: file not found")
 
 
 def load_predictor(args: argparse.Namespace) -> Predictor:
-    """The predictor the model arguments describe."""
+    """The predictor the model arguments describe (``--device`` is checked first)."""
+    check_device(args.device)
     from taptr.api.predictor import Predictor, autocast_type
 
     size = tuple(args.input_size) if args.input_size else None

@@ -7,7 +7,10 @@ bad argument fails in a second instead of after a long run.
 from __future__ import annotations
 
 import argparse
+import glob
 import os
+import re
+import sys
 import tempfile
 from collections.abc import Sequence
 from pathlib import Path
@@ -32,26 +35,44 @@ def add_device_argument(parser: argparse.ArgumentParser, default: str | None = N
 
 
 def check_device(device: str | None, flag: str = "--device") -> None:
-    """Raises a ValueError unless ``device`` names a device this machine has (None: auto)."""
+    """Raises a ValueError unless ``device`` names a device this machine has (None: auto).
+
+    Torch is imported only to ask about a GPU that may exist: a typo, ``cpu``, or ``cuda``
+    on a machine without GPU devices costs no import.
+    """
     if device is None:
         return
+    if not re.fullmatch(r"(cpu|cuda|mps)(:\d+)?", device):
+        raise ValueError(f"{flag} {device}: not a device; use cpu, cuda, cuda:N or mps")
+    kind, _, index = device.partition(":")
+    if kind == "cpu":
+        return
+    if kind == "cuda" and not _gpu_device_files():
+        raise ValueError(f"{flag} {device}: this machine has no usable CUDA GPU; use cpu")
     import torch
 
-    try:
-        parsed = torch.device(device)
-    except (RuntimeError, ValueError):
-        raise ValueError(f"{flag} {device}: not a device; use cpu, cuda, cuda:N or mps") from None
-    if parsed.type == "cuda":
+    if kind == "cuda":
         count = torch.cuda.device_count() if torch.cuda.is_available() else 0
         if count == 0:
             raise ValueError(f"{flag} {device}: this machine has no usable CUDA GPU; use cpu")
-        if parsed.index is not None and parsed.index >= count:
+        if index and int(index) >= count:
             raise ValueError(f"{flag} {device}: this machine has {count} GPU(s), cuda:0..")
-    elif parsed.type == "mps":
-        if not torch.backends.mps.is_available():
-            raise ValueError(f"{flag} {device}: MPS is not available on this machine; use cpu")
-    elif parsed.type != "cpu":
-        raise ValueError(f"{flag} {device}: taptr runs on cpu, cuda or mps")
+    elif not torch.backends.mps.is_available():
+        raise ValueError(f"{flag} {device}: MPS is not available on this machine; use cpu")
+
+
+def _gpu_device_files() -> bool:
+    """Whether the system shows a device a CUDA (or ROCm) build of torch could use.
+
+    False only where that is certain without torch: macOS, and Linux without NVIDIA, ROCm
+    or WSL device files; elsewhere torch is asked.
+    """
+    if sys.platform == "darwin":
+        return False
+    if not sys.platform.startswith("linux"):
+        return True
+    devices = ("/proc/driver/nvidia", "/dev/kfd", "/dev/dxg")
+    return bool(glob.glob("/dev/nvidia[0-9]*")) or any(os.path.exists(d) for d in devices)
 
 
 def check_input_size(

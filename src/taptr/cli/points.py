@@ -11,7 +11,7 @@ The rules, as ``taptr track --help`` states them:
   the first line may be a header such as ``t,x,y``. Any other line that is not three
   numbers is an error naming its line number, and so is a NaN or infinite number.
 
-Both stop at the limit of `taptr.api.inputs.max_points` before building the array.
+Both stop at the limit of `taptr.query_checks.max_points` before building the array.
 `build_queries` turns any of ``taptr track``'s query options (these two, ``--grid``,
 ``--mask``) into (N, 3) queries.
 """
@@ -24,6 +24,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
+
+from taptr.query_checks import check_num_points, check_query_values, max_points
 
 if TYPE_CHECKING:
     import argparse
@@ -44,8 +46,6 @@ def parse_points(text: str, flag: str = "--points") -> np.ndarray:
         ValueError: naming ``flag`` and the point, for anything that is not three finite
             numbers, and for more points than `max_points`.
     """
-    from taptr.api.inputs import check_num_points
-
     chunks = [chunk.strip() for chunk in re.split(r"[;\n]", text) if chunk.strip()]
     if not chunks:
         raise ValueError(f"{flag} {text!r} holds no points; write t,x,y;t,x,y;...")
@@ -72,7 +72,6 @@ def read_points_file(path: str, flag: str = "--points-file") -> np.ndarray:
         ValueError: naming the file and line, for a line that is not three finite
             numbers, text that is not UTF-8, or more points than `max_points`.
     """
-    from taptr.api.inputs import check_num_points, max_points
     from taptr.io.file_kind import kind, require_file
 
     file = Path(path)
@@ -119,22 +118,20 @@ def check_listed_points(
     Containers may state a wrong frame count, so queries at or beyond it are left to the
     predictor, which checks them on the decoded frames.
     """
-    from taptr.api.inputs import query_tensor
-
     if info.num_frames is None:
         return
     num_frames = min(info.num_frames, max_frames or info.num_frames)
     if float(points[:, 0].max()) >= num_frames:
         return
     try:
-        query_tensor(points, 1, num_frames, info.height, info.width)
+        check_query_values(points.astype(np.float64), num_frames, info.height, info.width)
     except ValueError as error:
         raise ValueError(f"{flag}: {error}") from None
 
 
 def build_queries(args: argparse.Namespace, num_frames: int, height: int, width: int) -> np.ndarray:
     """The (N, 3) queries the arguments ask for, on a video of that many frames and size."""
-    from taptr.api.inputs import check_num_points, grid_queries
+    from taptr.api.inputs import grid_queries
     from taptr.apps.editing import read_mask, sample_region_queries
 
     listed = listed_points(args)

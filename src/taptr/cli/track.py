@@ -22,6 +22,7 @@ from taptr.cli.options import (
     check_output_folder,
 )
 from taptr.cli.points import build_queries, check_listed_points, listed_points
+from taptr.cli.result_settings import SETTINGS_NAME, made_with, track_settings, write_settings
 from taptr.cli.run_memory import check_run_memory
 
 if TYPE_CHECKING:
@@ -50,7 +51,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         nargs="+",
         help="video files (mp4, webm, avi, gif, ...), folders of images, folders of videos, "
         "or quoted glob patterns; several videos get one result folder each under --out, "
-        "and videos whose folder already holds a finished run are skipped",
+        "and videos whose folder already holds a finished run with the same settings are "
+        "skipped (see --overwrite)",
     )
     queries = parser.add_mutually_exclusive_group(required=True)
     queries.add_argument(
@@ -80,17 +82,23 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--trajectories", action="store_true", help="also write trajectories.png")
     parser.add_argument("--out", default="outputs", help="output folder (default: outputs)")
+    parser.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="track every video again, even those whose folder already holds a run with "
+        "the same settings (recorded in its settings.json)",
+    )
     add_model_arguments(parser)
     parser.set_defaults(func=run)
 
 
-OUTPUT_NAMES = ("tracks.npz", "tracks.csv", "overlay.mp4", "trajectories.png")
+OUTPUT_NAMES = ("tracks.npz", "tracks.csv", "overlay.mp4", "trajectories.png", SETTINGS_NAME)
 """Every file track writes to --out; a new run replaces them as a set."""
 
 
 def check_track_arguments(args: argparse.Namespace) -> None:
     """Checks every option that can be checked without reading the video."""
-    from taptr.api.inputs import check_num_points
+    from taptr.query_checks import check_num_points
 
     check_output_folder(args.out)
     check_model_arguments(args)
@@ -102,35 +110,36 @@ def check_track_arguments(args: argparse.Namespace) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Tracks every video named and writes its three outputs; prints one summary."""
+    """Tracks every video named and writes its outputs; prints one summary."""
     from taptr.cli.videos import expand_videos, is_complete, my_share, result_folders
     from taptr.process_group import gather_objects, join_process_group
 
-    # Everything that can fail on the arguments fails here, before the long run.
+    # Everything that can fail on the arguments fails here, before torch and the model load.
     check_track_arguments(args)
     listed = listed_points(args)
     videos = expand_videos(args.video)
     folders = result_folders(videos, Path(args.out))
-    mine = [
-        i
-        for i in my_share(len(videos))
-        if len(videos) == 1 or not is_complete(folders[i], FINISHED)
-    ]
     if len(videos) == 1:
-        info = {0: check_video(args, videos[0], listed)}  # before the model loads
+        info = {0: check_video(args, videos[0], listed)}
     predictor = load_predictor(args)
+    settings = track_settings(args, predictor, listed)
+    finished = {
+        i for i in my_share(len(videos)) if len(videos) > 1 and is_complete(folders[i], FINISHED)
+    }
+    done = set() if args.overwrite else {i for i in finished if made_with(folders[i], settings)}
+    mine = [i for i in my_share(len(videos)) if i not in done]
     joined = join_process_group(predictor.device.type == "cuda")
     outcomes: list[tuple[str, str, tuple[int, int] | None]] = [
-        (str(videos[i]), "skipped: already done", None)
-        for i in my_share(len(videos))
-        if i not in mine
+        (str(videos[i]), "skipped: already done", None) for i in sorted(done)
     ]
     try:
         for index in mine:
             video, folder = videos[index], folders[index]
+            if index in finished and not args.overwrite:
+                print(f"{video}: {folder} was made with other settings; tracking it again")
             try:
                 checked = info[index] if len(videos) == 1 else check_video(args, video, listed)
-                counts = track_video(args, predictor, video, folder, listed, checked)
+                counts = track_video(args, predictor, video, folder, listed, checked, settings)
             except (ValueError, FileNotFoundError) as error:
                 if len(videos) == 1:
                     raise
@@ -148,7 +157,7 @@ def run(args: argparse.Namespace) -> int:
     return 0 if not any(status.startswith("failed") for _, status, _ in everyone) else 2
 
 
-FINISHED = ("tracks.npz", "tracks.csv", "overlay.mp4")
+FINISHED = ("tracks.npz", "tracks.csv", "overlay.mp4", SETTINGS_NAME)
 """The files every finished run leaves (written together at its end)."""
 
 
@@ -173,8 +182,9 @@ def track_video(
     out: Path,
     listed: np.ndarray | None,
     info: VideoInfo,
+    settings: dict,
 ) -> tuple[int, int]:
-    """Tracks one video into ``out``; returns (frames, points)."""
+    """Tracks one video into ``out`` with the run's ``settings``; returns (frames, points)."""
     from taptr.api.online import FrameCountError
 
     declared = info.num_frames
@@ -185,24 +195,27 @@ def track_video(
             listed if listed is not None else build_queries(args, declared, info.height, info.width)
         )
         try:
-            return _track_streaming(args, predictor, video, out, queries, info, declared)
+            return _track_streaming(
+                args, predictor, (video, out), queries, info, declared, settings
+            )
         except FrameCountError as error:  # the container's frame count was wrong
             logger.warning("%s: %s; tracking it in memory instead", video, error)
-    return _track_in_memory(args, predictor, video, out, listed, info)
+    return _track_in_memory(args, predictor, (video, out), listed, info, settings)
 
 
 def _track_streaming(
     args: argparse.Namespace,
     predictor: Predictor,
-    video: Path,
-    out: Path,
+    paths: tuple[Path, Path],
     queries: np.ndarray,
     info: VideoInfo,
     num_frames: int,
+    settings: dict,
 ) -> tuple[int, int]:
     """Decodes, tracks, draws and encodes frame by frame; holds about one window of frames.
 
     With ``--backward`` the file is read twice, backwards first (`taptr.io.reverse_frames`).
+    ``paths`` is (video, result folder).
     """
     from tqdm.auto import tqdm
 
@@ -212,6 +225,7 @@ def _track_streaming(
     from taptr.io.reverse_frames import iter_frames_reversed
     from taptr.io.video import iter_frames, write_video
 
+    video, out = paths
     kept: list[tuple[np.ndarray, np.ndarray]] = []
     last_frame: list[np.ndarray] = [np.zeros(0, np.uint8)]
     # checked before the first frame is decoded, with the predictor's own messages
@@ -260,23 +274,25 @@ def _track_streaming(
         if args.trajectories:
             starts = None if args.backward else queries[:, 0].astype(np.int64)
             _write_trajectories(staging, last_frame[0], tracks, visibility, starts)
-    _print_done(out, len(queries), len(tracks))
+        write_settings(staging, settings)
+    _print_done(out, len(queries), len(tracks), args.trajectories)
     return len(tracks), len(queries)
 
 
 def _track_in_memory(
     args: argparse.Namespace,
     predictor: Predictor,
-    video: Path,
-    out: Path,
+    paths: tuple[Path, Path],
     listed: np.ndarray | None,
     info: VideoInfo,
+    settings: dict,
 ) -> tuple[int, int]:
-    """Reads the whole video first (needed by --backward and by unknown frame counts)."""
+    """Reads the whole video first (for unknown frame counts); ``paths``: (video, folder)."""
     from taptr.io.atomic import result_folder
     from taptr.io.video import read_video, write_video
     from taptr.viz.draw import draw_tracks, point_colors
 
+    video, out = paths
     frames = read_video(video, max_frames=args.max_frames)
     queries = listed if listed is not None else build_queries(args, *frames.shape[:3])
     check_run_memory(
@@ -299,7 +315,8 @@ def _track_in_memory(
         write_video(staging / "overlay.mp4", overlay, info.fps or 24.0)
         if args.trajectories:
             _write_trajectories(staging, frames[-1], tracks, visibility, query_frames)
-    _print_done(out, len(queries), len(frames))
+        write_settings(staging, settings)
+    _print_done(out, len(queries), len(frames), args.trajectories)
     return len(frames), len(queries)
 
 
@@ -349,12 +366,18 @@ def _write_trajectories(
     )
 
 
-def _print_done(out: Path, points: int, frames: int) -> None:
+def _print_done(out: Path, points: int, frames: int, trajectories: bool) -> None:
+    names = ["tracks.npz", "tracks.csv", "overlay.mp4", *["trajectories.png"] * trajectories]
     print(
-        f"tracked {points} points through {frames} frames; wrote "
-        f"{out / 'tracks.npz'}, {out / 'tracks.csv'}, {out / 'overlay.mp4'}",
+        f"tracked {_count(points, 'point')} through {_count(frames, 'frame')}; wrote "
+        f"{', '.join(str(out / name) for name in [*names, SETTINGS_NAME])}",
         flush=True,
     )
+
+
+def _count(number: int, noun: str) -> str:
+    """``1 frame``, ``2 frames``."""
+    return f"{number} {noun}{'' if number == 1 else 's'}"
 
 
 def _print_summary(outcomes: list, out: Path) -> None:
@@ -363,7 +386,7 @@ def _print_summary(outcomes: list, out: Path) -> None:
     failed = [(video, status) for video, status, _ in outcomes if status.startswith("failed")]
     print(
         f"{len(outcomes)} videos: {tracked} tracked, {skipped} already done, {len(failed)} "
-        f"failed; results in {out}/<video name>/"
+        f"failed; results in {out}/<video name>/ (--overwrite tracks finished ones again)"
     )
     for video, status in failed:
         print(f"  {video}: {status}")

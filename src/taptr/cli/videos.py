@@ -3,8 +3,9 @@
 ``taptr track a.mp4 clips/ "more/*.webm" --out results/`` tracks every video named, found in
 a folder, or matched by a glob; each gets its own result folder ``results/<name>/``. A folder
 that already holds a complete result (all of its files, written together at the end of a
-run) is skipped, so a crashed run resumes where it stopped. Under ``torchrun`` each process
-takes every ``WORLD_SIZE``-th video, and the first process prints one summary.
+run) made with the same settings (`taptr.cli.result_settings`) is skipped, so a crashed run
+resumes where it stopped. Under ``torchrun`` each process takes every ``WORLD_SIZE``-th
+video, and the first process prints one summary.
 """
 
 from __future__ import annotations
@@ -26,7 +27,8 @@ def expand_videos(items: list[str]) -> list[Path]:
             patterns (quoted, so that taptr expands them).
 
     Raises:
-        FileNotFoundError: an item names nothing, or a pattern matches no video.
+        FileNotFoundError: an item names nothing, or a pattern matches no video (checked
+            for every item before any video is tracked).
     """
     videos: list[Path] = []
     for item in items:
@@ -40,8 +42,10 @@ def expand_videos(items: list[str]) -> list[Path]:
             if not found:
                 raise FileNotFoundError(f"{item} holds no video files or image frames")
             videos += found
-        else:
+        elif Path(item).exists():
             videos.append(Path(item))  # a file or an image folder; read errors come later
+        else:  # a typo: said now, not after the model has loaded
+            raise FileNotFoundError(f"video not found: {item}")
     return list(dict.fromkeys(videos))
 
 

@@ -237,7 +237,7 @@ def write_calibrated(
     release, a bundled or preset name) is written in taptr's format.
 
     Args:
-        source: checkpoint file or model name (None: the bundled default model).
+        source: checkpoint file or model name (None: the default model, `taptr.hub.DEFAULT_MODEL`).
         destination: the file to write (atomically); may equal ``source`` when that is a
             taptr checkpoint (another file, such as the authors' release, is never replaced).
         threshold: the calibrated threshold, in (0, 1).

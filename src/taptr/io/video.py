@@ -56,6 +56,13 @@ H264_PRESET = "veryfast"
 """x264 speed preset: 2.5x faster than the default ``medium`` on a 1080p overlay, with files
 of about the same size at `H264_CRF` (encoding was most of ``taptr track``'s time at 1080p)."""
 
+H264_PARAMS = "mbtree=0"
+"""x264 options: no macroblock-tree rate control, so that a video encodes to the same bytes
+every time. With it, x264 read memory it had not written: the same frames gave different
+files once the process had freed other data (``taptr edit`` differed by up to 56/255 per
+pixel between runs). Without it, files of 1296 × 720 frames were 8-12% larger, encoding 25%
+faster, PSNR the same (40.1 dB)."""
+
 
 @dataclass(frozen=True)
 class VideoInfo:
@@ -235,7 +242,11 @@ def write_video(path: str | os.PathLike[str], frames: Iterable[np.ndarray], fps:
         stream = container.add_stream("libx264", rate=Fraction(fps).limit_denominator(1001))
         stream.width, stream.height = width + width % 2, height + height % 2
         stream.pix_fmt = "yuv420p"
-        stream.options = {"crf": str(H264_CRF), "preset": H264_PRESET}
+        stream.options = {
+            "crf": str(H264_CRF),
+            "preset": H264_PRESET,
+            "x264-params": H264_PARAMS,
+        }
         for frame in chain([first], frame_iter):
             if _check_frame(frame).shape[:2] != (height, width):
                 raise ValueError(

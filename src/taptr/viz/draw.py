@@ -36,24 +36,32 @@ _SCALE = 1 << SHIFT
 
 
 def point_colors(positions: np.ndarray, y_range: tuple[float, float] | None = None) -> np.ndarray:
-    """Stable colours for points: a rainbow over their y coordinate.
+    """Stable colours for points: a rainbow from the top point (red) to the bottom one (violet).
 
     Args:
         positions: (N, 2) (x, y) pixels, usually each point's query position.
         y_range: the (top, bottom) y in pixels that map to red and violet. None spreads the
-            rainbow over the points' own y range, which tells nearby points apart best; pass
-            (0, H - 1) when points are added over time and colours must not depend on them.
+            rainbow evenly over the points' order from top to bottom (ties left to right),
+            so that a few points always get clearly different colours however close they
+            are (three points: red, green, violet); pass (0, H - 1) when points are added
+            over time and colours must not depend on them.
 
     Returns:
         (N, 3) uint8 RGB colours.
     """
-    y = np.nan_to_num(np.asarray(positions, dtype=np.float64).reshape(-1, 2)[:, 1])
-    if y.size == 0:
+    xy = np.nan_to_num(np.asarray(positions, dtype=np.float64).reshape(-1, 2))
+    if len(xy) == 0:
         return np.zeros((0, 3), np.uint8)  # OpenCV rejects empty images
-    top, bottom = (y.min(), y.max()) if y_range is None else y_range
-    fraction = np.clip((y - top) / max(bottom - top, 1e-6), 0.0, 1.0)
+    if y_range is None:
+        # by rank, not by y: two points with nearly the same y would get nearly one colour
+        rank = np.empty(len(xy))
+        rank[np.lexsort((xy[:, 0], xy[:, 1]))] = np.arange(len(xy))
+        fraction = rank / max(len(xy) - 1, 1)
+    else:
+        top, bottom = y_range
+        fraction = np.clip((xy[:, 1] - top) / max(bottom - top, 1e-6), 0.0, 1.0)
     # OpenCV's 8-bit hue runs over [0, 180); stop at 135 (violet) so both ends differ.
-    hsv = np.empty((len(y), 1, 3), np.uint8)
+    hsv = np.empty((len(xy), 1, 3), np.uint8)
     hsv[:, 0, 0] = np.round(fraction * 135).astype(np.uint8)
     hsv[:, 0, 1:] = 255
     return cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)[:, 0]

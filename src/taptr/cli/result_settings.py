@@ -1,0 +1,95 @@
+"""What made a result folder of ``taptr track``: the settings that change its files.
+
+Every run writes ``settings.json`` next to its tracks, in the same atomic set, so a folder's
+settings always describe the files beside it. When ``taptr track`` over several videos
+meets a folder that holds a finished run, it skips that video only if the recorded
+settings are the ones asked for now; a folder made with other settings (another model,
+other queries, ``--backward``, ...) or by a taptr too old to record them is tracked again.
+``--overwrite`` tracks every video again.
+
+Recorded: the model (name or file, and a file's SHA-256, so a retrained checkpoint saved
+under the same name counts as another model), its visibility threshold, the queries (the
+grid, a digest of the listed points, or a digest of the mask file), and the options that
+change what is computed or written. Not recorded: where or how fast the model runs
+(``--device``, ``--kernel``, ``--compile``), which give the same tracks up to rounding.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from taptr.api.predictor import Predictor
+
+SETTINGS_NAME = "settings.json"
+"""The file of a result folder that records its settings."""
+
+FORMAT = 1
+"""Version of the settings record; a record of another version never matches."""
+
+
+def track_settings(
+    args: argparse.Namespace, predictor: Predictor, listed: np.ndarray | None
+) -> dict[str, Any]:
+    """The settings of this run that change a result folder's files (JSON-ready)."""
+    return {
+        "format": FORMAT,
+        "model": predictor.source,
+        "model_sha256": _file_digest(predictor.source),
+        "visibility_threshold": predictor.visibility_threshold,
+        "queries": _query_settings(args, listed),
+        "input_size": list(predictor.input_size),
+        "context_points": predictor.context_points,
+        "support_points": predictor.support_points,
+        "history_frames": predictor.history_frames,
+        "dtype": args.dtype,
+        "max_frames": args.max_frames,
+        "backward": bool(args.backward),
+        "trajectories": bool(args.trajectories),
+    }
+
+
+def write_settings(folder: Path, settings: dict[str, Any]) -> None:
+    """Writes ``settings.json`` into ``folder`` (a staging folder, written atomically)."""
+    text = json.dumps(settings, indent=2, sort_keys=True)
+    (folder / SETTINGS_NAME).write_text(text + "\n", encoding="utf-8")
+
+
+def made_with(folder: Path, settings: dict[str, Any]) -> bool:
+    """Whether ``folder`` records exactly ``settings`` (False when it records nothing)."""
+    try:
+        recorded = json.loads((folder / SETTINGS_NAME).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    # a round trip through JSON, so tuples and lists, ints and floats compare alike
+    return recorded == json.loads(json.dumps(settings))
+
+
+def _query_settings(args: argparse.Namespace, listed: np.ndarray | None) -> dict[str, Any]:
+    if listed is not None:
+        points = np.ascontiguousarray(listed, dtype=np.float32)
+        return {"points": len(points), "sha256": hashlib.sha256(points.tobytes()).hexdigest()}
+    if args.grid is not None:
+        return {"grid": args.grid, "query_frame": args.query_frame}
+    return {
+        "mask_sha256": _file_digest(args.mask),
+        "mask_stride": args.mask_stride,
+        "query_frame": args.query_frame,
+    }
+
+
+def _file_digest(path: str | None) -> str | None:
+    """SHA-256 of a file, or None for a model name."""
+    if path is None or not Path(path).is_file():
+        return None
+    digest = hashlib.sha256()
+    with Path(path).open("rb") as stream:
+        for block in iter(lambda: stream.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
