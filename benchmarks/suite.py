@@ -11,7 +11,10 @@ Cases:
     length     memory flat in video length: fast execution at 24 and 300 frames.
     points     10,000 vs 1,000 points at 256×256 (fast execution; the reference execution's
                N×N masks and all-frame features are the baseline at 1,000 points).
-    gpu        800 and 5000 points on CUDA in float32 and bfloat16.
+    gpu        800 and 5000 points on CUDA: float32, bfloat16 and float16 autocast, and
+               torch.compile in float32 and bfloat16 (each case warmed up untimed first).
+    gpu-v3     TAPTRv3 ResNet-18 and ResNet-50 on CUDA, 800 and 5000 points, float32 and
+               bfloat16 autocast.
     v3         TAPTRv3 ResNet-18 (384×512) and ResNet-50 (512×512) next to TAPTRv2 (512²),
                24 frames, 800 points, reference vs fast.
     v3-long    TAPTRv3-R18 fast over 1,000 frames, 800 points: time per frame at frame 24 and
@@ -48,7 +51,13 @@ CASES: dict[str, list[list[str]]] = {
     ],
     "gpu": [
         ["--preset", "taptrv2", "--frames", "24", "--points", "800", "5000", "--device", "cuda",
-         "--execution", "fast", "--dtype", dtype]
+         "--execution", "fast", "--dtype", dtype, *extra]
+        for dtype, extra in (("float32", []), ("bfloat16", []), ("float16", []),
+                             ("float32", ["--compile"]), ("bfloat16", ["--compile"]))
+    ],
+    "gpu-v3": [
+        ["--preset", "taptrv3", "taptrv3-r50", "--frames", "24", "--points", "800", "5000",
+         "--device", "cuda", "--execution", "fast", "--dtype", dtype]
         for dtype in ("float32", "bfloat16")
     ],
     "v3": [["--preset", "taptrv3", "taptrv3-r50", "taptrv2", "--frames", "24", "--points", "800"]],

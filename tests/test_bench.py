@@ -109,3 +109,20 @@ def test_the_machine_names_its_cpu_model(tmp_path):
     cpuinfo.write_text("processor\t: 0\n")  # no model name: the architecture instead
     assert cpu_name(cpuinfo) == cpu_name(tmp_path / "missing") != ""
     assert machine()["cpu_capability"] == torch.backends.cpu.get_cpu_capability()
+
+
+def test_bench_refuses_autocast_dtypes_on_the_cpu(capsys):
+    """On the CPU ``--dtype bfloat16`` measured float32 without saying so."""
+    argv = ["bench", "--preset", "tiny", "--frames", "9", "--points", "5", "--dtype", "bfloat16"]
+    assert main(argv) == 2
+    assert "--dtype bfloat16 is CUDA autocast" in capsys.readouterr().err
+
+
+def test_gpu_executions_benchmark_runs_on_a_tiny_case(tmp_path):
+    data, printed = _benchmark_script(
+        "gpu_executions.py", tmp_path / "executions.json", "--device", "cpu", "--repeats", "1"
+    )
+    names = [row["execution"] for row in data["rows"]]
+    assert names[0] == "fast (per window)" and "reference (frames up front)" in names
+    assert all(row["max_position_change"] < 1e-4 for row in data["rows"])
+    assert "FPS" in printed

@@ -198,3 +198,38 @@ def test_fast_execution_feeds_the_backbone_channels_last(generator):
     scale = float(plain.memory.abs().max())
     torch.testing.assert_close(fast, plain.memory, atol=1e-5 * scale, rtol=0)
     assert [e.channels_last for e in EXECUTIONS.values()] == [False, True, False]
+
+
+@pytest.mark.parametrize("preset", ["tiny", "tiny-v3"])
+def test_fast_execution_runs_under_autocast_with_blas_products(preset):
+    """CUDA's autocast path, emulated on the CPU: BLAS products (no oneDNN) in bfloat16.
+
+    The row blocks and the frame tables write products into float32 buffers with
+    ``out=``, which autocast does not cover; under autocast they step aside (a GPU run of
+    ``taptr bench --dtype bfloat16`` failed there with "mat1 and mat2 must have the same
+    dtype").
+    """
+    from taptr.apps.benchmark import BenchConfig, _inputs, _track
+
+    # more points than a row block, so that the blocked MLPs would be taken
+    config = BenchConfig(preset=preset, frames=9, points=ROW_BLOCK // 2, size=(64, 64))
+    model = taptr.build_model(preset, execution=_fast(onednn_linear=False)).eval()
+    video, queries = _inputs(config)
+    with torch.no_grad():
+        exact = _track(model, config, video, queries)
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            rounded = _track(model, config, video, queries)
+    assert rounded.positions.shape == exact.positions.shape
+    assert torch.isfinite(rounded.positions).all()
+    assert not torch.equal(rounded.positions, exact.positions)  # bfloat16 products did run
+
+
+def test_row_blocks_are_for_the_cpu_only():
+    from taptr.model.ops.row_blocks import use_row_blocks
+
+    mlp = MLP(8, 16, 8, 2).requires_grad_(False)
+    rows = ROW_BLOCK + 1
+    assert use_row_blocks(mlp, torch.zeros(rows, 8), ROW_BLOCK)
+    assert not use_row_blocks(mlp, torch.zeros(rows, 8, device="meta"), ROW_BLOCK)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        assert not use_row_blocks(mlp, torch.zeros(rows, 8), ROW_BLOCK)

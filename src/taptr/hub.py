@@ -88,7 +88,6 @@ WEIGHTS = {
 """Weights on the Hugging Face Hub: name → where the file is and what it holds."""
 
 
-
 @dataclass(frozen=True)
 class ManualWeights:
     """Weights the authors host on Google Drive, which a user downloads in a browser.

@@ -67,9 +67,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     add_device_argument(parser, default="cpu")
     parser.add_argument(
         "--dtype",
-        choices=["float32", "bfloat16"],
+        choices=["float32", "bfloat16", "float16"],
         default="float32",
-        help="dtype of weights and activations (default float32)",
+        help="float32, or bfloat16 / float16 autocast on CUDA (default float32)",
+    )
+    parser.add_argument(
+        "--compile",
+        action="store_true",
+        help="torch.compile the model's heavy parts first (compilation is not timed on CUDA)",
     )
     parser.add_argument(
         "--execution",
@@ -119,6 +124,7 @@ def run(args: argparse.Namespace) -> int:
             dtype=args.dtype,
             flops=args.flops,
             history_frames=history,
+            compile=args.compile,
         )
         if args.execution == "both":
             case = compare(config)
@@ -180,6 +186,11 @@ def check_bench_arguments(args: argparse.Namespace) -> None:
     for history in args.history_frames:
         if history is not None and (history < 0 or history == 1):
             raise ValueError("--history-frames must be 0 (the whole video) or at least 2")
+    if args.dtype != "float32" and args.device == "cpu":
+        # autocast on the CPU runs few products in bfloat16 and measured no faster
+        raise ValueError(
+            f"--dtype {args.dtype} is CUDA autocast; on the CPU it would measure float32"
+        )
     check_at_least(args.frames, 1, "--frames")
     check_at_least(args.threads, 1, "--threads")
     for points in args.points:

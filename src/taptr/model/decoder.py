@@ -468,6 +468,7 @@ class Decoder(nn.Module):
             reference, previous = refined.reference, refined.previous
         return outputs.stacked(features)
 
+
 class LayerOutputs:
     """Collects the per-layer outputs of one window."""
 

@@ -22,6 +22,7 @@ import torch
 from torch import Tensor, nn
 
 from taptr.model.ops.dense import apply_linear, onednn_applies
+from taptr.model.ops.row_blocks import autocasting
 
 KeyValue = tuple[Tensor, Tensor]
 """One image's key and value tables, each (S, C): the memory's rows through one layer's
@@ -118,6 +119,8 @@ class FrameTables:
                 if onednn and onednn_applies(memory, projection.weight):
                     # oneDNN writes a fresh tensor: copied into the reused pair (see __init__)
                     table.copy_(apply_linear(projection, memory, onednn=True))
+                elif autocasting(memory):
+                    table.copy_(projection(memory))
                 else:
                     torch.addmm(projection.bias, memory, projection.weight.t(), out=table)
         return pair

@@ -35,14 +35,32 @@ def tracks_grad(module: nn.Module, x: Tensor) -> bool:
     return x.requires_grad or any(p.requires_grad for p in module.parameters())
 
 
+def autocasting(x: Tensor) -> bool:
+    """Whether autocast is on for ``x``'s device.
+
+    Autocast does not apply to ``out=`` products: they would meet its lower-precision
+    activations with float32 weights, so the paths that write into reused buffers step
+    aside for plain calls then.
+    """
+    return torch.is_autocast_enabled(x.device.type)
+
+
 def use_row_blocks(module: nn.Module, x: Tensor, row_block: int | None) -> bool:
     """Whether to run ``module`` on ``x`` (..., C) in row blocks.
 
-    Only with a block size, more rows than one block, and nothing for autograd to record
-    (the ``out=`` products below do not support it).
+    Only on the CPU (blocks keep intermediates in its caches; on an H200 the blocked
+    ``fast`` execution of TAPTRv2 ran at 25.5 frames/s and unblocked at 31.4, 800 points,
+    docs/BENCHMARKS.md), with a block size, more rows than one block, nothing for autograd
+    to record and no autocast (the ``out=`` products below support neither).
     """
     rows = x.numel() // x.shape[-1]
-    return row_block is not None and rows > row_block and not tracks_grad(module, x)
+    return (
+        row_block is not None
+        and x.device.type == "cpu"
+        and rows > row_block
+        and not tracks_grad(module, x)
+        and not autocasting(x)
+    )
 
 
 def blocked_mlp(layers: nn.ModuleList, x: Tensor, row_block: int, onednn: bool = False) -> Tensor:
