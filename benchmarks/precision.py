@@ -5,7 +5,9 @@
 Builds the paper model on the golden fixtures' seed-1 weights (tests/fixtures), runs each
 golden case (tests/fixtures/v2_*.npz: the official code's inputs) with the official forward
 in float32, then under ``torch.autocast`` in bfloat16 and float16 (weights stay float32, as
-``Predictor(autocast=...)`` and ``taptr track --dtype`` run them), and prints, per case and
+``Predictor(autocast=...)`` and ``taptr track --dtype`` run them) and, on a CPU with native
+bfloat16, with the fast execution's products in bfloat16 (`bfloat16_products`, what
+``--dtype bfloat16`` runs on such a CPU), and prints, per case and
 type: the largest position change in pixels of the case's frames, the largest visibility
 logit change, and the share of visibility decisions that stay the same; float32 is also
 compared with the official outputs. Writes benchmarks/results/precision-DEVICE.json.
@@ -45,12 +47,22 @@ def seed1_model(device: str):
     return model.to(device).eval()
 
 
-def run_case(model, golden: dict, device: str, autocast: torch.dtype | None) -> dict:
+def precision(device: str, name: str | None):
+    """The context a type runs in: autocast, or (``bfloat16 products``) oneDNN bfloat16."""
+    from taptr.model.ops.dense import bfloat16_products
+
+    if name == "bfloat16 products":
+        return bfloat16_products()
+    dtype = TYPES.get(name)
+    return torch.autocast(device, dtype=dtype, enabled=dtype is not None)
+
+
+def run_case(model, golden: dict, device: str, name: str | None) -> dict:
     """Positions (N, T, 2) normalised and visibility logits (N, T) of one golden case."""
     import taptr
 
     inputs = [x.to(device) for x in golden_inputs(golden)]
-    with torch.no_grad(), torch.autocast(device, dtype=autocast, enabled=autocast is not None):
+    with torch.no_grad(), precision(device, name):
         out = taptr.official_forward(model, *inputs)
     positions = out["positions"].float().transpose(0, 1).cpu().numpy()
     logits = out["visibility_logits"][..., 1].float().transpose(0, 1).cpu().numpy()
@@ -70,10 +82,15 @@ def compare(run: dict, base_positions: np.ndarray, base_logits: np.ndarray, size
 
 
 def main(argv: list[str] | None = None) -> int:
+    from taptr.model.ops.dense import native_bfloat16
+
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args(argv)
     model = seed1_model(args.device)
+    names = list(TYPES)
+    if args.device == "cpu" and native_bfloat16():
+        names.append("bfloat16 products")
     rows = {}
     for case in CASES:
         with np.load(FIXTURES / f"{case}.npz") as data:
@@ -82,8 +99,8 @@ def main(argv: list[str] | None = None) -> int:
         base = run_case(model, golden, args.device, None)
         official = (golden["out_pred_xy_norm"], golden["out_vis_logits"][..., 1])
         rows[f"{case} float32 vs official"] = compare(base, *official, size)
-        for name, dtype in TYPES.items():
-            run = run_case(model, golden, args.device, dtype)
+        for name in names:
+            run = run_case(model, golden, args.device, name)
             rows[f"{case} {name} vs float32"] = compare(
                 run, base["positions"], base["logits"], size
             )

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import pytest
 import torch
 
 from taptr.cli.main import main
@@ -111,18 +112,25 @@ def test_the_machine_names_its_cpu_model(tmp_path):
     assert machine()["cpu_capability"] == torch.backends.cpu.get_cpu_capability()
 
 
-def test_bench_refuses_autocast_dtypes_on_the_cpu(capsys):
-    """On the CPU ``--dtype bfloat16`` measured float32 without saying so."""
-    argv = ["bench", "--preset", "tiny", "--frames", "9", "--points", "5", "--dtype", "bfloat16"]
+def test_bench_refuses_float16_on_the_cpu(capsys):
+    argv = ["bench", "--preset", "tiny", "--frames", "9", "--points", "5", "--dtype", "float16"]
     assert main(argv) == 2
-    assert "--dtype bfloat16 is CUDA autocast" in capsys.readouterr().err
+    assert "--dtype float16 is CUDA autocast" in capsys.readouterr().err
 
 
-def test_gpu_executions_benchmark_runs_on_a_tiny_case(tmp_path):
-    data, printed = _benchmark_script(
-        "gpu_executions.py", tmp_path / "executions.json", "--device", "cpu", "--repeats", "1"
-    )
-    names = [row["execution"] for row in data["rows"]]
-    assert names[0] == "fast (per window)" and "reference (frames up front)" in names
-    assert all(row["max_position_change"] < 1e-4 for row in data["rows"])
-    assert "FPS" in printed
+def test_bench_compares_dtypes_in_one_command(tmp_path, capsys):
+    from taptr.model.ops.dense import native_bfloat16
+
+    if not native_bfloat16():
+        pytest.skip("this CPU has no native bfloat16")
+    out = tmp_path / "types.json"
+    argv = ["bench", "--preset", "tiny", "--frames", "9", "--points", "5", "--size", "32", "48"]
+    options = ["--execution", "fast", "--dtype", "float32", "bfloat16", "--threads", "1"]
+    assert main([*argv, *options, "--json", str(out)]) == 0
+    assert "bfloat16" in capsys.readouterr().out
+    (case,) = json.loads(out.read_text())["cases"]
+    assert set(case["results"]) == {"float32", "bfloat16"}
+    change = case["against_float32"]["bfloat16"]
+    assert change["speedup"] > 0 and change["visibility_decisions"] == 9 * 5
+    assert 0 < change["max_position_change_px"] < 5
+    assert main([*argv, "--dtype", "float32", "bfloat16"]) == 2  # one execution at a time

@@ -19,6 +19,7 @@ from taptr.io.tracks import load_tracks_npz
 from taptr.io.video import write_video
 from taptr.model import kernel_choice
 from taptr.model.kernel_choice import choose_kernel, time_kernels
+from taptr.model.ops import dense
 
 QUERIES = torch.tensor([[0, 10.0, 20.0], [3, 40.0, 30.0], [5, 70.0, 50.0]])
 
@@ -45,32 +46,60 @@ def _linear_output_types(model: torch.nn.Module) -> tuple[set[torch.dtype], list
     return seen, hooks
 
 
-@pytest.mark.parametrize("half", [torch.bfloat16, torch.float16])
-def test_autocast_runs_matrix_products_in_half_and_stays_close(model, video, half):
+def test_float16_autocast_runs_matrix_products_in_half_and_stays_close(model, video):
     reference = Predictor(copy.deepcopy(model), device="cpu").track(video, QUERIES)
-    predictor = Predictor(copy.deepcopy(model), device="cpu", autocast=half)
+    predictor = Predictor(copy.deepcopy(model), device="cpu", autocast=torch.float16)
     seen, hooks = _linear_output_types(predictor.model)
     result = predictor.track(video, QUERIES)
     for hook in hooks:
         hook.remove()
-    assert seen == {half}  # every linear layer ran in the half type
+    assert seen == {torch.float16}  # every linear layer ran in the half type
     assert next(predictor.model.parameters()).dtype == torch.float32  # weights untouched
     assert result.tracks.dtype == torch.float32
     difference = (result.tracks - reference.tracks).abs().max().item()
     assert 0 < difference < 3.0  # pixels of an 80 × 64 video: rounded, not broken
 
 
-def test_online_tracker_runs_under_the_predictors_autocast(model, video):
+def _count_bfloat16_products(monkeypatch) -> list[int]:
+    """Counts the weights `linear` hands to oneDNN in bfloat16."""
+    calls = [0]
+    original = dense._bfloat16_copy
+
+    def counted(tensor):
+        calls[0] += 1
+        return original(tensor)
+
+    monkeypatch.setattr(dense, "_bfloat16_copy", counted)
+    return calls
+
+
+@pytest.mark.skipif(not dense.native_bfloat16(), reason="this CPU has no native bfloat16")
+def test_bfloat16_on_a_cpu_that_has_it_runs_the_products_in_bfloat16(model, video, monkeypatch):
+    reference = Predictor(copy.deepcopy(model), device="cpu").track(video, QUERIES)
     predictor = Predictor(copy.deepcopy(model), device="cpu", autocast=torch.bfloat16)
-    seen, hooks = _linear_output_types(predictor.model)
-    online = OnlineTracker(predictor)
+    calls = _count_bfloat16_products(monkeypatch)
+    result = predictor.track(video, QUERIES)
+    assert calls[0] > 0
+    assert next(predictor.model.parameters()).dtype == torch.float32  # weights untouched
+    assert result.tracks.dtype == torch.float32
+    difference = (result.tracks - reference.tracks).abs().max().item()
+    assert 0 < difference < 3.0  # pixels of an 80 × 64 video: rounded, not broken
+    online = OnlineTracker(predictor)  # the online tracker runs in the predictor's context
     state = online.start(num_frames=10, frame_size=(64, 80))
     online.add_queries(state, QUERIES[:1])
+    calls[0] = 0
     online.step(state, video[0])
     online.finish(state)
-    for hook in hooks:
-        hook.remove()
-    assert seen == {torch.bfloat16}
+    assert calls[0] > 0
+
+
+def test_bfloat16_on_a_cpu_without_it_says_so_and_runs_float32(model, video, monkeypatch):
+    monkeypatch.setattr("taptr.api.predictor.native_bfloat16", lambda: False)
+    reference = Predictor(copy.deepcopy(model), device="cpu").track(video, QUERIES)
+    with pytest.warns(UserWarning, match="no native bfloat16 .*: running float32"):
+        predictor = Predictor(copy.deepcopy(model), device="cpu", autocast=torch.bfloat16)
+    assert predictor.autocast is None
+    assert torch.equal(predictor.track(video, QUERIES).tracks, reference.tracks)
 
 
 def test_autocast_takes_half_types_only(model):
@@ -127,6 +156,7 @@ def test_the_clis_kernel_choices_are_the_models():
 
 
 def test_model_options_reach_the_predictor(monkeypatch, video):
+    monkeypatch.setattr("taptr.api.predictor.native_bfloat16", lambda: True)
     assert load_predictor(_model_args()).autocast is None
     predictor = load_predictor(_model_args("--dtype", "bfloat16", "--kernel", "grid_sample"))
     assert predictor.autocast == torch.bfloat16
@@ -162,8 +192,8 @@ def test_track_with_dtype_and_kernel(model, tmp_path):
     clip = write_video(tmp_path / "clip.mp4", frames, fps=10)
     base = ["track", str(clip), "--points", "0,16,22;3,30.5,20", "--checkpoint", str(weights)]
     assert main([*base, "--out", str(tmp_path / "f32")]) == 0
-    half = ["--dtype", "bfloat16", "--kernel", "grid_sample"]
-    assert main([*base, *half, "--out", str(tmp_path / "bf16")]) == 0
+    half = ["--dtype", "float16", "--kernel", "grid_sample"]
+    assert main([*base, *half, "--out", str(tmp_path / "f16")]) == 0
     f32 = load_tracks_npz(tmp_path / "f32" / "tracks.npz").tracks
-    bf16 = load_tracks_npz(tmp_path / "bf16" / "tracks.npz").tracks
-    assert 0 < np.abs(f32 - bf16).max() < 3.0
+    f16 = load_tracks_npz(tmp_path / "f16" / "tracks.npz").tracks
+    assert 0 < np.abs(f32 - f16).max() < 3.0

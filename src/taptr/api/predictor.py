@@ -15,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import warnings
 from collections.abc import Callable
 from typing import Any
 
@@ -35,6 +36,7 @@ from taptr.memory_estimate import check_memory, estimate_tracking
 from taptr.model.drivers import run_tracker, step_count
 from taptr.model.frames import EncodedFrames
 from taptr.model.kernel_choice import choose_kernel
+from taptr.model.ops.dense import bfloat16_products, native_bfloat16
 from taptr.model.sliding_window import QuerySet
 from taptr.model.taptr import TAPTR, normalize_frames
 from taptr.model.v3.taptr import TAPTRv3
@@ -77,8 +79,11 @@ class Predictor:
         autocast: run the model under ``torch.autocast`` with this type (``torch.float16``
             or ``torch.bfloat16``), weights kept in ``dtype``: matrix products in half
             precision, reductions and the position updates in float32, as the official demo
-            runs (float16). None (the default) runs in ``dtype`` throughout. Accuracy against
-            float32 is in docs/BENCHMARKS.md.
+            runs (float16). None (the default) runs in ``dtype`` throughout. On the CPU,
+            ``torch.bfloat16`` instead runs the fast execution's products in bfloat16
+            through oneDNN where the CPU has native bfloat16 (AVX512-BF16 or AMX;
+            `taptr.model.ops.dense.bfloat16_products`), and float32 with a warning where it
+            has not. Accuracy against float32 is in docs/BENCHMARKS.md.
         kernel: the deformable-attention kernel: ``auto`` measures ``gather`` against
             ``grid_sample`` on accelerators (`taptr.model.kernel_choice`) and keeps the
             model's execution on CPU (where ``gather`` is measured faster); ``measure``
@@ -126,6 +131,12 @@ class Predictor:
             raise ValueError(
                 f"autocast must be torch.float16, torch.bfloat16 or None, got {autocast}"
             )
+        if autocast == torch.bfloat16 and self.device.type == "cpu" and not native_bfloat16():
+            warnings.warn(
+                "this CPU has no native bfloat16 (AVX512-BF16 or AMX): running float32",
+                stacklevel=2,
+            )
+            autocast = None
         self.autocast = autocast
         config = model.config
         height, width = input_size or (config.input_size if config else (512, 512))
@@ -315,9 +326,14 @@ class Predictor:
         return with_support(queries, scheme)
 
     def precision(self) -> contextlib.AbstractContextManager[object]:
-        """The context every model call runs in: autocast when the predictor asks for it."""
+        """The context every model call runs in: autocast when the predictor asks for it.
+
+        On the CPU, bfloat16 runs as oneDNN bfloat16 products (`bfloat16_products`).
+        """
         if self.autocast is None:
             return contextlib.nullcontext()
+        if self.autocast == torch.bfloat16 and self.device.type == "cpu":
+            return bfloat16_products()
         return torch.autocast(self.device.type, dtype=self.autocast)
 
     def _track_one(

@@ -19,6 +19,7 @@ attention counted with the math SDPA backend; bilinear sampling and gathers not 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import platform
@@ -38,7 +39,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from taptr.model.ops.dense import linear, onednn_applies
+from taptr.model.ops.dense import bfloat16_products, linear, onednn_applies
 
 if TYPE_CHECKING:
     from taptr.model.taptr import TAPTR
@@ -60,7 +61,9 @@ class BenchConfig:
         size: (height, width) of the model input.
         threads: torch CPU threads.
         device: ``cpu`` or ``cuda``.
-        dtype: ``float32``, or ``bfloat16`` / ``float16`` autocast (CUDA only).
+        dtype: ``float32``; ``bfloat16`` / ``float16`` autocast on CUDA; ``bfloat16``
+            products through oneDNN on CPUs with native bfloat16
+            (`taptr.model.ops.dense.bfloat16_products`).
         execution: ``reference`` or ``fast`` (`taptr.model.execution.EXECUTIONS`).
         flops: also count FLOPs (a second, slower pass).
         seed: seed of the weights, video and queries.
@@ -206,13 +209,9 @@ def run_case(config: BenchConfig, positions_out: str | None = None) -> BenchResu
 
         compile_model(model)
     video, queries = _inputs(config)
-    autocast = torch.autocast(
-        "cuda",
-        dtype=getattr(torch, config.dtype),
-        enabled=config.dtype in ("bfloat16", "float16"),
-    )
+    autocast = _precision(config)
     if config.device.startswith("cuda"):
-        with torch.no_grad(), autocast:
+        with torch.no_grad(), _precision(config):
             _track(model, config, video, queries)
         torch.cuda.synchronize()
         torch.cuda.reset_peak_memory_stats()
@@ -243,6 +242,15 @@ def run_case(config: BenchConfig, positions_out: str | None = None) -> BenchResu
         flops=flops,
         extra={"step_seconds": steps},
     )
+
+
+def _precision(config: BenchConfig) -> contextlib.AbstractContextManager[object]:
+    """bfloat16 / float16 autocast on CUDA; bfloat16 products through oneDNN on the CPU."""
+    if config.dtype == "float32":
+        return contextlib.nullcontext()
+    if config.device == "cpu":
+        return bfloat16_products()
+    return torch.autocast("cuda", dtype=getattr(torch, config.dtype))
 
 
 def seconds_per_frame_at(result: BenchResult, frame: int, span: int = 8) -> float | None:
@@ -297,6 +305,36 @@ def compare(base: BenchConfig) -> dict[str, Any]:
     return {"results": results, "agreement": agreement}
 
 
+def compare_types(base: BenchConfig, dtypes: list[str]) -> dict[str, Any]:
+    """Runs one execution of a case in each dtype, each in its own process.
+
+    Returns the results and how each dtype differs from the first: speed and peak-memory
+    ratios, position changes in pixels of the model input, visibility decisions flipped.
+    """
+    results, positions, logits = {}, {}, {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for dtype in dtypes:
+            out = os.path.join(tmp, f"{dtype}.npy")
+            results[dtype] = run_isolated(_with(base, dtype=dtype), out)
+            positions[dtype], logits[dtype] = np.load(out), np.load(out + ".logits.npy")
+    first = dtypes[0]
+    height, width = base.size
+    scale = np.array([width - 1, height - 1])  # normalised → pixels of the model input
+    against = {}
+    for dtype in dtypes[1:]:
+        moved = np.abs(positions[dtype] - positions[first]) * scale
+        flips = (logits[dtype] > 0) != (logits[first] > 0)
+        against[dtype] = {
+            "speedup": results[first].seconds_per_frame / results[dtype].seconds_per_frame,
+            "memory_ratio": results[dtype].peak_rss / results[first].peak_rss,
+            "max_position_change_px": float(moved.max()),
+            "median_position_change_px": float(np.median(moved)),
+            "visibility_flips": int(flips.sum()),
+            "visibility_decisions": int(flips.size),
+        }
+    return {"results": results, "against_" + first: against}
+
+
 def _with(config: BenchConfig, **changes: Any) -> BenchConfig:
     return BenchConfig(**{**asdict(config), **changes})
 
@@ -349,8 +387,10 @@ def format_table(rows: list[BenchResult]) -> str:
         stages = " ".join(f"{row.stage_seconds.get(s, 0.0) / c['frames']:8.3f}" for s in STAGES)
         gflops = f"{row.flops / c['frames'] / 1e9:11.1f}" if row.flops else f"{'-':>11}"
         size = f"{c['size'][0]}x{c['size'][1]}"
+        short = {"float32": "", "bfloat16": "/bf16", "float16": "/fp16"}[c["dtype"]]
+        execution = c["execution"] + short
         lines.append(
-            f"{preset:8} {c['execution']:9} {c['frames']:4d} {c['points']:6d} {size:>9} "
+            f"{preset:8} {execution:9} {c['frames']:4d} {c['points']:6d} {size:>9} "
             f"{row.seconds_per_frame:8.3f} {stages} {row.peak_rss / 2**30:8.2f}G "
             f"{row.parameters:11,d} {gflops}"
         )

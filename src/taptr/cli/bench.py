@@ -68,8 +68,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--dtype",
         choices=["float32", "bfloat16", "float16"],
-        default="float32",
-        help="float32, or bfloat16 / float16 autocast on CUDA (default float32)",
+        nargs="+",
+        default=["float32"],
+        help="one or more of: float32; bfloat16 or float16 autocast on CUDA; on the CPU, "
+        "bfloat16 products through oneDNN where the CPU has them natively (default float32)",
     )
     parser.add_argument(
         "--compile",
@@ -93,6 +95,7 @@ def run(args: argparse.Namespace) -> int:
     from taptr.apps.benchmark import (
         BenchConfig,
         compare,
+        compare_types,
         format_table,
         machine,
         peak_flops,
@@ -104,6 +107,8 @@ def run(args: argparse.Namespace) -> int:
 
     command = "taptr " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     rows, cases = [], []
+    if len(args.dtype) > 1 and args.execution == "both":
+        raise ValueError("several --dtype values compare one --execution (fast or reference)")
     cases_to_run = [
         (preset, points, history)
         for preset in args.preset
@@ -121,13 +126,18 @@ def run(args: argparse.Namespace) -> int:
             size=(height, width),
             threads=args.threads,
             device=args.device,
-            dtype=args.dtype,
+            dtype=args.dtype[0],
             flops=args.flops,
             history_frames=history,
             compile=args.compile,
         )
         if args.execution == "both":
             case = compare(config)
+            rows += list(case["results"].values())
+            cases.append({"preset": preset, "points": points, **case})
+        elif len(args.dtype) > 1:
+            chosen = BenchConfig(**{**config.__dict__, "execution": args.execution})
+            case = compare_types(chosen, args.dtype)
             rows += list(case["results"].values())
             cases.append({"preset": preset, "points": points, **case})
         else:
@@ -145,6 +155,14 @@ def run(args: argparse.Namespace) -> int:
                 f"{at_end:.3f} at frame {row.config['frames']}"
             )
     for case in cases:
+        for dtype, change in case.get(f"against_{args.dtype[0]}", {}).items():
+            print(
+                f"{case['preset']} N={case['points']}: {dtype} {change['speedup']:.2f}x "
+                f"{args.dtype[0]}, peak RSS ratio {change['memory_ratio']:.2f}, positions moved "
+                f"max {change['max_position_change_px']:.3f} px, median "
+                f"{change['median_position_change_px']:.4f} px, visibility decisions flipped "
+                f"{change['visibility_flips']} of {change['visibility_decisions']}"
+            )
         agreement = case.get("agreement")
         if agreement:
             print(
@@ -186,11 +204,15 @@ def check_bench_arguments(args: argparse.Namespace) -> None:
     for history in args.history_frames:
         if history is not None and (history < 0 or history == 1):
             raise ValueError("--history-frames must be 0 (the whole video) or at least 2")
-    if args.dtype != "float32" and args.device == "cpu":
-        # autocast on the CPU runs few products in bfloat16 and measured no faster
-        raise ValueError(
-            f"--dtype {args.dtype} is CUDA autocast; on the CPU it would measure float32"
-        )
+    if "float16" in args.dtype and args.device == "cpu":
+        raise ValueError("--dtype float16 is CUDA autocast; on the CPU use bfloat16")
+    if "bfloat16" in args.dtype and args.device == "cpu":
+        from taptr.model.ops.dense import native_bfloat16
+
+        if not native_bfloat16():
+            raise ValueError(
+                "--dtype bfloat16: this CPU has no native bfloat16 (AVX512-BF16 or AMX)"
+            )
     check_at_least(args.frames, 1, "--frames")
     check_at_least(args.threads, 1, "--threads")
     for points in args.points:

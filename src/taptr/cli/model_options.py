@@ -83,8 +83,9 @@ def add_model_arguments(parser: argparse.ArgumentParser, max_frames: int | None 
         choices=AUTOCAST_TYPES,
         default="float32",
         help="run the model under autocast in this type, weights kept in float32 (float16 "
-        "as the official demo runs, or bfloat16: for GPUs; accuracy in docs/BENCHMARKS.md) "
-        "(default: float32, no autocast)",
+        "as the official demo runs, or bfloat16; on the CPU, bfloat16 runs the products in "
+        "bfloat16 where the CPU has it natively, AVX512-BF16 or AMX, else float32; accuracy "
+        "in docs/BENCHMARKS.md) (default: float32, no autocast)",
     )
     parser.add_argument(
         "--kernel",

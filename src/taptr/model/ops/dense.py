@@ -16,12 +16,23 @@ only where autograd records nothing, and only where it exists: x86 CPUs (AVX2 or
 elsewhere, as on Apple silicon, the BLAS is the vendor's own), float32, outside autocast
 and outside graph capture (``torch.compile``, ``torch.export``, ``torch.jit.trace``).
 Everywhere else `linear` is ``F.linear``.
+
+Inside `bfloat16_products`, on CPUs that multiply bfloat16 natively (AVX512-BF16 or AMX,
+`native_bfloat16`), those oneDNN products take bfloat16 inputs and weights (a bfloat16
+copy of each weight, made once) and accumulate in float32; their results come back as
+float32, except between the layers of an MLP (``hidden``), where the next product reads
+them in bfloat16 anyway. Everything that is not a product (norms, softmax, sampling,
+sigmoids, the position update's sums) stays in float32.
 """
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import functools
 import math
+import weakref
+from collections.abc import Iterator
 
 import torch
 import torch.nn.functional as F
@@ -53,9 +64,57 @@ def onednn_available() -> bool:
     return hasattr(torch.ops.mkldnn, "_linear_pointwise")
 
 
+@functools.cache
+def native_bfloat16() -> bool:
+    """Whether this CPU multiplies bfloat16 natively (AVX512-BF16 or AMX) through oneDNN."""
+    if not onednn_available():
+        return False
+    avx512_bf16 = getattr(torch.cpu, "_is_avx512_bf16_supported", lambda: False)()
+    amx = getattr(torch.cpu, "_is_amx_tile_supported", lambda: False)()
+    return bool(avx512_bf16 or amx) and bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+
+
+_PRODUCT_TYPE: contextvars.ContextVar[torch.dtype] = contextvars.ContextVar(
+    "taptr_product_type", default=torch.float32
+)
+
+
+@contextlib.contextmanager
+def bfloat16_products() -> Iterator[None]:
+    """Runs `linear`'s oneDNN products in bfloat16 inside the block (see the module notes).
+
+    Raises:
+        RuntimeError: this CPU has no native bfloat16 (`native_bfloat16`).
+    """
+    if not native_bfloat16():
+        raise RuntimeError("this CPU has no native bfloat16 products (AVX512-BF16 or AMX)")
+    token = _PRODUCT_TYPE.set(torch.bfloat16)
+    try:
+        yield
+    finally:
+        _PRODUCT_TYPE.reset(token)
+
+
+_BFLOAT16_COPIES: dict[int, tuple[int, Tensor]] = {}
+"""id(weight) → (its version when copied, the bfloat16 copy); an entry leaves with its weight."""
+
+
+def _bfloat16_copy(tensor: Tensor) -> Tensor:
+    """A bfloat16 copy of a float32 weight, made once per weight and version."""
+    key = id(tensor)
+    kept = _BFLOAT16_COPIES.get(key)
+    if kept is None:
+        weakref.finalize(tensor, _BFLOAT16_COPIES.pop, key, None)
+    if kept is None or kept[0] != tensor._version:
+        kept = (tensor._version, tensor.detach().to(torch.bfloat16))
+        _BFLOAT16_COPIES[key] = kept
+    return kept[1]
+
+
 def onednn_applies(x: Tensor, weight: Tensor) -> bool:
     """Whether `linear` would run ``x`` (..., in) through oneDNN."""
-    if x.device.type != "cpu" or x.dtype != torch.float32 or weight.dtype != torch.float32:
+    inputs = (torch.float32, torch.bfloat16) if _bfloat16_mode() else (torch.float32,)
+    if x.device.type != "cpu" or x.dtype not in inputs or weight.dtype != torch.float32:
         return False
     if torch.is_grad_enabled() and (x.requires_grad or weight.requires_grad):
         return False
@@ -70,8 +129,18 @@ def _tracing() -> bool:
     return torch.compiler.is_compiling() or exporting() or torch.jit.is_tracing()
 
 
+def _bfloat16_mode() -> bool:
+    return _PRODUCT_TYPE.get() is torch.bfloat16
+
+
 def linear(
-    x: Tensor, weight: Tensor, bias: Tensor | None, *, onednn: bool, relu: bool = False
+    x: Tensor,
+    weight: Tensor,
+    bias: Tensor | None,
+    *,
+    onednn: bool,
+    relu: bool = False,
+    hidden: bool = False,
 ) -> Tensor:
     """``F.linear(x, weight, bias)``, then ReLU if asked; through oneDNN where it applies.
 
@@ -82,18 +151,27 @@ def linear(
         onednn: the execution's choice (`taptr.model.execution.Execution.onednn_linear`);
             False always runs ``F.linear``.
         relu: apply ReLU to the result (fused into the product on the oneDNN path).
+        hidden: the result only feeds another `linear` (an MLP's inner layer): inside
+            `bfloat16_products` it stays bfloat16.
 
     Returns:
-        (..., out).
+        (..., out), float32 unless ``hidden`` inside `bfloat16_products`.
     """
     if onednn and onednn_applies(x, weight):
-        return torch.ops.mkldnn._linear_pointwise(
-            x, weight, bias, "relu" if relu else "none", [], ""
-        )
+        attr = "relu" if relu else "none"
+        if _bfloat16_mode():
+            bias16 = None if bias is None else _bfloat16_copy(bias)
+            out = torch.ops.mkldnn._linear_pointwise(
+                x.to(torch.bfloat16), _bfloat16_copy(weight), bias16, attr, [], ""
+            )
+            return out if hidden else out.float()
+        return torch.ops.mkldnn._linear_pointwise(x, weight, bias, attr, [], "")
     out = F.linear(x, weight, bias)
     return F.relu(out) if relu else out
 
 
-def apply_linear(layer: nn.Linear, x: Tensor, *, onednn: bool, relu: bool = False) -> Tensor:
+def apply_linear(
+    layer: nn.Linear, x: Tensor, *, onednn: bool, relu: bool = False, hidden: bool = False
+) -> Tensor:
     """``layer(x)`` (then ReLU if asked) by `linear`: through oneDNN where it applies."""
-    return linear(x, layer.weight, layer.bias, onednn=onednn, relu=relu)
+    return linear(x, layer.weight, layer.bias, onednn=onednn, relu=relu, hidden=hidden)

@@ -84,7 +84,7 @@ def blocked_mlp(layers: nn.ModuleList, x: Tensor, row_block: int, onednn: bool =
         for start in range(0, x.shape[0], row_block):
             h = x[start : start + row_block]
             for i, layer in enumerate(linears):
-                h = apply_linear(layer, h, onednn=True, relu=i < last)
+                h = apply_linear(layer, h, onednn=True, relu=i < last, hidden=i < last)
             out[start : start + h.shape[0]] = h
         return out
     # one hidden buffer per inner layer, reused by every block
