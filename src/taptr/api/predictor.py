@@ -137,6 +137,8 @@ class Predictor:
                 stacklevel=2,
             )
             autocast = None
+        if autocast == torch.bfloat16 and self.device.type == "cpu":
+            self.model.bfloat16_trunk()
         self.autocast = autocast
         config = model.config
         height, width = input_size or (config.input_size if config else (512, 512))

@@ -204,6 +204,8 @@ def run_case(config: BenchConfig, positions_out: str | None = None) -> BenchResu
     torch.set_num_threads(config.threads)
     torch.manual_seed(config.seed)
     model = build_model(config.preset, execution=config.execution).eval().to(config.device)
+    if config.dtype == "bfloat16" and config.device == "cpu":
+        model.bfloat16_trunk()
     if config.compile:
         from taptr.export.compile import compile_model
 

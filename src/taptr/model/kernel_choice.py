@@ -56,9 +56,9 @@ def time_kernels(
         ``{kernel: seconds}`` for every kernel of `taptr.model.ops.KERNELS`.
     """
     height, width = input_size or (model.config.input_size if model.config else (256, 256))
-    dtype = next(model.parameters()).dtype
+    dtype = next(model.input_projections.parameters()).dtype  # the trunk may be bfloat16
     frame = torch.randn(1, 3, height, width, device=device, dtype=dtype)
-    maps = model.input_projections(model.backbone(frame))
+    maps = model.feature_maps(frame)
     seconds = {}
     for kernel in KERNELS:
         execution = dataclasses.replace(model.execution, kernel=kernel)

@@ -22,7 +22,8 @@ Inside `bfloat16_products`, on CPUs that multiply bfloat16 natively (AVX512-BF16
 copy of each weight, made once) and accumulate in float32; their results come back as
 float32, except between the layers of an MLP (``hidden``), where the next product reads
 them in bfloat16 anyway. Everything that is not a product (norms, softmax, sampling,
-sigmoids, the position update's sums) stays in float32.
+sigmoids, the position update's sums) stays in float32. The backbone's convolutions run in
+bfloat16 too where the model's trunk is stored so (`taptr.model.taptr.TAPTR.bfloat16_trunk`).
 """
 
 from __future__ import annotations
@@ -113,7 +114,7 @@ def _bfloat16_copy(tensor: Tensor) -> Tensor:
 
 def onednn_applies(x: Tensor, weight: Tensor) -> bool:
     """Whether `linear` would run ``x`` (..., in) through oneDNN."""
-    inputs = (torch.float32, torch.bfloat16) if _bfloat16_mode() else (torch.float32,)
+    inputs = (torch.float32, torch.bfloat16) if bfloat16_mode() else (torch.float32,)
     if x.device.type != "cpu" or x.dtype not in inputs or weight.dtype != torch.float32:
         return False
     if torch.is_grad_enabled() and (x.requires_grad or weight.requires_grad):
@@ -129,7 +130,8 @@ def _tracing() -> bool:
     return torch.compiler.is_compiling() or exporting() or torch.jit.is_tracing()
 
 
-def _bfloat16_mode() -> bool:
+def bfloat16_mode() -> bool:
+    """Whether this code runs inside `bfloat16_products`."""
     return _PRODUCT_TYPE.get() is torch.bfloat16
 
 
@@ -159,7 +161,7 @@ def linear(
     """
     if onednn and onednn_applies(x, weight):
         attr = "relu" if relu else "none"
-        if _bfloat16_mode():
+        if bfloat16_mode():
             bias16 = None if bias is None else _bfloat16_copy(bias)
             out = torch.ops.mkldnn._linear_pointwise(
                 x.to(torch.bfloat16), _bfloat16_copy(weight), bias16, attr, [], ""
