@@ -187,13 +187,14 @@ def test_fast_execution_feeds_the_backbone_channels_last(generator):
             inputs[0].is_contiguous(memory_format=torch.channels_last)
         )
     )
-    images = torch.rand(2, 3, 64, 64, generator=generator)
+    images = torch.rand(2, 3, 192, 192, generator=generator)  # CHANNELS_LAST_MIN_PIXELS
     with torch.no_grad():
         fast = model.set_execution(_fast(row_block=None)).encode_images(images).memory
         plain = model.set_execution(_fast(row_block=None, channels_last=False)).encode_images(
             images
         )
-    assert seen == [True, False]
+        model.set_execution(_fast(row_block=None)).encode_images(images[..., :128, :128])
+    assert seen == [True, False, False]  # small frames as they are: it does not pay there
     # another convolution algorithm: float rounding, relative to the features' scale
     scale = float(plain.memory.abs().max())
     torch.testing.assert_close(fast, plain.memory, atol=1e-5 * scale, rtol=0)

@@ -20,7 +20,12 @@ from taptr.config import ModelConfig
 from taptr.model.backbone import Backbone, InputProjections
 from taptr.model.decoder import Decoder, DecoderOutput
 from taptr.model.encoder import Encoder
-from taptr.model.execution import DEFAULT_EXECUTION, Execution, get_execution
+from taptr.model.execution import (
+    CHANNELS_LAST_MIN_PIXELS,
+    DEFAULT_EXECUTION,
+    Execution,
+    get_execution,
+)
 from taptr.model.frame_tables import FrameTables
 from taptr.model.layers import MLP
 from taptr.model.query_init import QueryInitializer
@@ -129,7 +134,8 @@ class TAPTR(nn.Module):
         Shape:
             (N, 3, H, W) ImageNet-normalised frames → L maps (N, C, H_l, W_l).
         """
-        if self.execution.channels_last:
+        height, width = images.shape[-2:]
+        if self.execution.channels_last and height * width >= CHANNELS_LAST_MIN_PIXELS:
             images = images.contiguous(memory_format=torch.channels_last)
         trunk = next(self.backbone.parameters()).dtype
         if trunk != images.dtype:
