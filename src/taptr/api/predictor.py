@@ -64,6 +64,21 @@ def autocast_type(name: str) -> torch.dtype | None:
     return None if name == "float32" else getattr(torch, name)
 
 
+def precision_context(
+    device_type: str, autocast: torch.dtype | None
+) -> contextlib.AbstractContextManager[object]:
+    """The context a model runs in for an ``autocast`` type (None: float32 as it is).
+
+    ``torch.autocast`` on accelerators; on the CPU, bfloat16 is oneDNN bfloat16 products
+    (`bfloat16_products`, with the trunk stored by `TAPTR.bfloat16_trunk`).
+    """
+    if autocast is None:
+        return contextlib.nullcontext()
+    if autocast == torch.bfloat16 and device_type == "cpu":
+        return bfloat16_products()
+    return torch.autocast(device_type, dtype=autocast)
+
+
 class Predictor:
     """Tracks points through videos with a TAPTR model.
 
@@ -332,11 +347,7 @@ class Predictor:
 
         On the CPU, bfloat16 runs as oneDNN bfloat16 products (`bfloat16_products`).
         """
-        if self.autocast is None:
-            return contextlib.nullcontext()
-        if self.autocast == torch.bfloat16 and self.device.type == "cpu":
-            return bfloat16_products()
-        return torch.autocast(self.device.type, dtype=self.autocast)
+        return precision_context(self.device.type, self.autocast)
 
     def _track_one(
         self, frames: Tensor, queries: Tensor, backward: bool, on_window: Callable[[], object]

@@ -39,7 +39,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from taptr.model.ops.dense import bfloat16_products, linear, onednn_applies
+from taptr.model.ops.dense import linear, onednn_applies
 
 if TYPE_CHECKING:
     from taptr.model.taptr import TAPTR
@@ -247,12 +247,10 @@ def run_case(config: BenchConfig, positions_out: str | None = None) -> BenchResu
 
 
 def _precision(config: BenchConfig) -> contextlib.AbstractContextManager[object]:
-    """bfloat16 / float16 autocast on CUDA; bfloat16 products through oneDNN on the CPU."""
-    if config.dtype == "float32":
-        return contextlib.nullcontext()
-    if config.device == "cpu":
-        return bfloat16_products()
-    return torch.autocast("cuda", dtype=getattr(torch, config.dtype))
+    """What the predictor runs in for this dtype (`taptr.api.predictor.precision_context`)."""
+    from taptr.api.predictor import autocast_type, precision_context
+
+    return precision_context(torch.device(config.device).type, autocast_type(config.dtype))
 
 
 def seconds_per_frame_at(result: BenchResult, frame: int, span: int = 8) -> float | None:

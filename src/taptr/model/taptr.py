@@ -137,12 +137,11 @@ class TAPTR(nn.Module):
         height, width = images.shape[-2:]
         if self.execution.channels_last and height * width >= CHANNELS_LAST_MIN_PIXELS:
             images = images.contiguous(memory_format=torch.channels_last)
+        # a trunk stored in bfloat16 (`bfloat16_trunk`) hands its maps on in the frames' type;
+        # otherwise both conversions return their input
         trunk = next(self.backbone.parameters()).dtype
-        if trunk != images.dtype:
-            # a trunk stored in bfloat16 (`bfloat16_trunk`): its maps handed on in float32
-            maps = self.backbone(images.to(trunk), self.execution.in_place_norms)
-            return self.input_projections([m.to(images.dtype) for m in maps])
-        return self.input_projections(self.backbone(images, self.execution.in_place_norms))
+        maps = self.backbone(images.to(trunk), self.execution.in_place_norms)
+        return self.input_projections([m.to(images.dtype) for m in maps])
 
     def bfloat16_trunk(self) -> TAPTR:
         """Stores the backbone in bfloat16, for `taptr.model.ops.dense.bfloat16_products`.
