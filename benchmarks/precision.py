@@ -10,7 +10,8 @@ bfloat16, with the fast execution's products in bfloat16 (`bfloat16_products`, w
 ``--dtype bfloat16`` runs on such a CPU), and prints, per case and
 type: the largest position change in pixels of the case's frames, the largest visibility
 logit change, and the share of visibility decisions that stay the same; float32 is also
-compared with the official outputs. Writes benchmarks/results/precision-DEVICE.json.
+compared with the official outputs. Writes benchmarks/results/precision-DEVICE.json, with
+the machine it ran on.
 """
 
 from __future__ import annotations
@@ -28,6 +29,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # the golden fixtures' helpers live with the tests
 
 from tests.helpers import FIXTURES, golden_inputs, seed1_official_weights  # noqa: E402
+
+from taptr.apps.benchmark import machine  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 CASES = ("v2_small_nonsquare", "v2_long")
@@ -115,7 +118,8 @@ def main(argv: list[str] | None = None) -> int:
         )
     RESULTS.mkdir(exist_ok=True)
     out = RESULTS / f"precision-{args.device}.json"
-    out.write_text(json.dumps({"device": args.device, "rows": rows}, indent=1))
+    record = {"device": args.device, "machine": machine(), "rows": rows}
+    out.write_text(json.dumps(record, indent=1))
     print(f"wrote {out}")
     return 0
 

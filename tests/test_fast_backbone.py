@@ -1,5 +1,7 @@
 """The fast execution's frozen batch norms, run in place at inference, equal torchvision's."""
 
+import copy
+
 import torch
 from torchvision.ops import FrozenBatchNorm2d
 
@@ -82,3 +84,33 @@ def test_the_model_hands_the_flag_to_the_backbone(generator):
         model.set_execution("reference").encode_images(images)
     assert seen == [True, False]
     assert [e.in_place_norms for e in EXECUTIONS.values()] == [False, True, False]
+
+
+def test_folded_norms_give_the_same_maps_in_both_executions(generator):
+    for kind in ("resnet50", "resnet18"):
+        body = _resnet(generator) if kind == "resnet50" else ResNetBody(kind).eval()
+        images = torch.randn(2, 3, 64, 96, generator=generator)
+        with torch.no_grad():
+            expected = body(images)
+            body.fold_norms()
+            folded = [body(images), body(images, in_place_norms=True)]
+        assert not any(isinstance(m, FrozenBatchNorm2d) for m in body.modules())
+        for maps in folded:
+            for got, want in zip(maps, expected, strict=True):
+                # the same sums in another order: float32 rounding of deep, large maps
+                assert 0 < (got - want).norm() / want.norm() < 1e-5
+
+
+def test_the_bfloat16_trunk_folds_its_norms_before_rounding(generator):
+    model = taptr.build_model("small")  # a ConvNet trunk: cast, nothing to fold
+    model.bfloat16_trunk()
+    assert {p.dtype for p in model.backbone.parameters()} == {torch.bfloat16}
+    body = _resnet(generator)
+    images = torch.randn(1, 3, 64, 64, generator=generator)
+    with torch.no_grad():
+        exact = body(images)[-1]
+        rounded = copy.deepcopy(body).to(torch.bfloat16)(images.bfloat16())[-1].float()
+        body.fold_norms()
+        folded = body.to(torch.bfloat16)(images.bfloat16())[-1].float()
+    # one rounding of the folded weights instead of rounded outputs scaled and shifted
+    assert (folded - exact).norm() < (rounded - exact).norm()

@@ -39,7 +39,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from taptr.model.ops.dense import linear, onednn_applies
+from taptr.model.ops.dense import bfloat16_hardware, linear, onednn_applies
 
 if TYPE_CHECKING:
     from taptr.model.taptr import TAPTR
@@ -363,6 +363,7 @@ def machine() -> dict[str, Any]:
         "cpu": cpu_name(),
         "cpu_capability": torch.backends.cpu.get_cpu_capability(),
         "cpu_count": os.cpu_count(),
+        "cpu_bfloat16": bfloat16_hardware(),
     }
     if torch.cuda.is_available():
         info["cuda_device"] = torch.cuda.get_device_name()

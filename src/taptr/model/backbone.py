@@ -10,6 +10,12 @@ torchvision's `FrozenBatchNorm2d` writes ``x * scale`` and then ``+ shift`` as t
 tensors, a quarter of the trunk's time at 512 × 512 on two threads; every norm in a
 ResNet reads a convolution output that nothing else holds, so it can be written over in
 one pass with the same per-element arithmetic.
+
+For the bfloat16 trunk (`taptr.model.taptr.TAPTR.bfloat16_trunk`) the norms are folded
+into the convolutions before rounding (`ResNetBody.fold_norms`): one rounding of the
+folded weights instead of a rounded convolution output scaled and shifted in bfloat16,
+which moved the trunk's maps by 0.67x as much on the golden weights and skips the norm
+passes.
 """
 
 from __future__ import annotations
@@ -19,6 +25,7 @@ import math
 
 import torch
 from torch import Tensor, nn
+from torch.nn.utils.fusion import fuse_conv_bn_weights
 from torchvision.models import resnet18, resnet50
 from torchvision.models.resnet import BasicBlock, Bottleneck
 from torchvision.ops import FrozenBatchNorm2d
@@ -26,12 +33,15 @@ from torchvision.ops import FrozenBatchNorm2d
 from taptr.model.ops.row_blocks import tracks_grad
 
 
-def frozen_norm_(norm: FrozenBatchNorm2d, x: Tensor) -> Tensor:
+def frozen_norm_(norm: FrozenBatchNorm2d | nn.Identity, x: Tensor) -> Tensor:
     """``norm(x)`` written into ``x``, (N, C, H, W); without autograd only.
 
     The scale and shift are formed as torchvision forms them, and ``addcmul`` adds the
-    shift to the rounded product, as ``x * scale + shift`` does.
+    shift to the rounded product, as ``x * scale + shift`` does. A norm folded into its
+    convolution (`ResNetBody.fold_norms`) is an identity.
     """
+    if isinstance(norm, nn.Identity):
+        return x
     scale = norm.weight * (norm.running_var + norm.eps).rsqrt()
     shift = norm.bias - norm.running_mean * scale
     return torch.addcmul(shift.view(1, -1, 1, 1), x, scale.view(1, -1, 1, 1), out=x)
@@ -85,6 +95,38 @@ class ResNetBody(nn.Module):
             trunk.layer3,
             trunk.layer4,
         )
+
+    def fold_norms(self) -> None:
+        """Folds every frozen norm into the convolution before it, in float32; inference only.
+
+        Each convolution gets the norm's scale in its weights and the shift as its bias,
+        and the norm becomes an identity: the same function up to float rounding, with
+        other parameter names (a folded trunk is not saved as a checkpoint).
+        """
+        pairs = [(self, "conv1", "bn1")]
+        for stage in (self.layer1, self.layer2, self.layer3, self.layer4):
+            for block in stage:
+                names = (
+                    ("conv1", "conv2", "conv3")
+                    if isinstance(block, Bottleneck)
+                    else ("conv1", "conv2")
+                )
+                pairs += [(block, name, name.replace("conv", "bn")) for name in names]
+                if block.downsample is not None:
+                    pairs.append((block.downsample, "0", "1"))
+        for owner, conv_name, norm_name in pairs:
+            conv, norm = getattr(owner, conv_name), getattr(owner, norm_name)
+            weight, bias = fuse_conv_bn_weights(
+                conv.weight.float(),
+                None,
+                norm.running_mean.float(),
+                norm.running_var.float(),
+                norm.eps,
+                norm.weight.float(),
+                norm.bias.float(),
+            )
+            conv.weight, conv.bias = weight, bias
+            setattr(owner, norm_name, nn.Identity())
 
     def forward(self, images: Tensor, in_place_norms: bool = False) -> list[Tensor]:
         """Returns the four stage outputs.

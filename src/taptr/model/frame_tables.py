@@ -117,8 +117,9 @@ class FrameTables:
         with torch.no_grad():
             for projection, table in zip((key_proj, value_proj), pair, strict=True):
                 if onednn and onednn_applies(memory, projection.weight):
-                    # oneDNN writes a fresh tensor: copied into the reused pair (see __init__)
-                    table.copy_(apply_linear(projection, memory, onednn=True))
+                    # oneDNN writes a fresh tensor: copied into the reused pair (see __init__),
+                    # converted on the way where the product ran in bfloat16
+                    table.copy_(apply_linear(projection, memory, onednn=True, keep_type=True))
                 elif autocasting(memory):
                     table.copy_(projection(memory))
                 else:

@@ -42,5 +42,5 @@ class MLP(nn.Module):
             return blocked_mlp(self.layers, rows, row_block, onednn).view(*x.shape[:-1], -1)
         last = len(self.layers) - 1
         for i, layer in enumerate(self.layers):
-            x = apply_linear(layer, x, onednn=onednn, relu=i < last, hidden=i < last)
+            x = apply_linear(layer, x, onednn=onednn, relu=i < last, keep_type=i < last)
         return x

@@ -20,10 +20,11 @@ Everywhere else `linear` is ``F.linear``.
 Inside `bfloat16_products`, on CPUs that multiply bfloat16 natively (AVX512-BF16 or AMX,
 `native_bfloat16`), those oneDNN products take bfloat16 inputs and weights (a bfloat16
 copy of each weight, made once) and accumulate in float32; their results come back as
-float32, except between the layers of an MLP (``hidden``), where the next product reads
-them in bfloat16 anyway. Everything that is not a product (norms, softmax, sampling,
-sigmoids, the position update's sums) stays in float32. The backbone's convolutions run in
-bfloat16 too where the model's trunk is stored so (`taptr.model.taptr.TAPTR.bfloat16_trunk`).
+float32, except where the caller reads them in bfloat16 anyway or converts them itself
+(``keep_type``: between the layers of an MLP, into row blocks and the decoder's float32
+tables). Everything that is not a product (norms, softmax, sampling, sigmoids, the
+position update's sums) stays in float32. The backbone's convolutions run in bfloat16 too
+where the model's trunk is stored so (`taptr.model.taptr.TAPTR.bfloat16_trunk`).
 """
 
 from __future__ import annotations
@@ -65,14 +66,21 @@ def onednn_available() -> bool:
     return hasattr(torch.ops.mkldnn, "_linear_pointwise")
 
 
+def bfloat16_hardware() -> dict[str, bool]:
+    """This CPU's bfloat16 instructions as PyTorch sees them: ``avx512_bf16``, ``amx``."""
+    return {
+        "avx512_bf16": bool(getattr(torch.cpu, "_is_avx512_bf16_supported", lambda: False)()),
+        "amx": bool(getattr(torch.cpu, "_is_amx_tile_supported", lambda: False)()),
+    }
+
+
 @functools.cache
 def native_bfloat16() -> bool:
     """Whether this CPU multiplies bfloat16 natively (AVX512-BF16 or AMX) through oneDNN."""
     if not onednn_available():
         return False
-    avx512_bf16 = getattr(torch.cpu, "_is_avx512_bf16_supported", lambda: False)()
-    amx = getattr(torch.cpu, "_is_amx_tile_supported", lambda: False)()
-    return bool(avx512_bf16 or amx) and bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    has = any(bfloat16_hardware().values())
+    return has and bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
 
 
 _PRODUCT_TYPE: contextvars.ContextVar[torch.dtype] = contextvars.ContextVar(
@@ -101,13 +109,22 @@ _BFLOAT16_COPIES: dict[int, tuple[int, Tensor]] = {}
 
 
 def _bfloat16_copy(tensor: Tensor) -> Tensor:
-    """A bfloat16 copy of a float32 weight, made once per weight and version."""
+    """A bfloat16 copy of a float32 weight, made once per weight and version.
+
+    A view of a weight (the query, key and value rows that attention slices off its packed
+    ``in_proj_weight`` at every call) is a new tensor each call: it is read off the copy of
+    the weight it views, so the conversion is not repeated per call.
+    """
+    base = tensor._base
+    if base is not None and base.is_contiguous():
+        offset = tensor.storage_offset() - base.storage_offset()
+        return _bfloat16_copy(base).as_strided(tensor.size(), tensor.stride(), offset)
     key = id(tensor)
     kept = _BFLOAT16_COPIES.get(key)
     if kept is None:
         weakref.finalize(tensor, _BFLOAT16_COPIES.pop, key, None)
     if kept is None or kept[0] != tensor._version:
-        kept = (tensor._version, tensor.detach().to(torch.bfloat16))
+        kept = (tensor._version, tensor.detach().contiguous().to(torch.bfloat16))
         _BFLOAT16_COPIES[key] = kept
     return kept[1]
 
@@ -142,7 +159,7 @@ def linear(
     *,
     onednn: bool,
     relu: bool = False,
-    hidden: bool = False,
+    keep_type: bool = False,
 ) -> Tensor:
     """``F.linear(x, weight, bias)``, then ReLU if asked; through oneDNN where it applies.
 
@@ -153,11 +170,12 @@ def linear(
         onednn: the execution's choice (`taptr.model.execution.Execution.onednn_linear`);
             False always runs ``F.linear``.
         relu: apply ReLU to the result (fused into the product on the oneDNN path).
-        hidden: the result only feeds another `linear` (an MLP's inner layer): inside
-            `bfloat16_products` it stays bfloat16.
+        keep_type: the caller takes the product's own type (the next `linear` of an MLP,
+            or a ``copy_`` into a float32 buffer, which converts on the way): inside
+            `bfloat16_products` the result stays bfloat16, saving a conversion pass.
 
     Returns:
-        (..., out), float32 unless ``hidden`` inside `bfloat16_products`.
+        (..., out), float32 unless ``keep_type`` inside `bfloat16_products`.
     """
     if onednn and onednn_applies(x, weight):
         attr = "relu" if relu else "none"
@@ -166,14 +184,14 @@ def linear(
             out = torch.ops.mkldnn._linear_pointwise(
                 x.to(torch.bfloat16), _bfloat16_copy(weight), bias16, attr, [], ""
             )
-            return out if hidden else out.float()
+            return out if keep_type else out.float()
         return torch.ops.mkldnn._linear_pointwise(x, weight, bias, attr, [], "")
     out = F.linear(x, weight, bias)
     return F.relu(out) if relu else out
 
 
 def apply_linear(
-    layer: nn.Linear, x: Tensor, *, onednn: bool, relu: bool = False, hidden: bool = False
+    layer: nn.Linear, x: Tensor, *, onednn: bool, relu: bool = False, keep_type: bool = False
 ) -> Tensor:
     """``layer(x)`` (then ReLU if asked) by `linear`: through oneDNN where it applies."""
-    return linear(x, layer.weight, layer.bias, onednn=onednn, relu=relu, hidden=hidden)
+    return linear(x, layer.weight, layer.bias, onednn=onednn, relu=relu, keep_type=keep_type)

@@ -84,7 +84,8 @@ def blocked_mlp(layers: nn.ModuleList, x: Tensor, row_block: int, onednn: bool =
         for start in range(0, x.shape[0], row_block):
             h = x[start : start + row_block]
             for i, layer in enumerate(linears):
-                h = apply_linear(layer, h, onednn=True, relu=i < last, hidden=i < last)
+                # the last product too: the copy into ``out`` converts it
+                h = apply_linear(layer, h, onednn=True, relu=i < last, keep_type=True)
             out[start : start + h.shape[0]] = h
         return out
     # one hidden buffer per inner layer, reused by every block
