@@ -114,3 +114,12 @@ def test_the_bfloat16_trunk_folds_its_norms_before_rounding(generator):
         folded = body.to(torch.bfloat16)(images.bfloat16())[-1].float()
     # one rounding of the folded weights instead of rounded outputs scaled and shifted
     assert (folded - exact).norm() < (rounded - exact).norm()
+
+
+def test_folding_twice_changes_nothing(generator):
+    body = _resnet(generator)
+    body.fold_norms()
+    once = copy.deepcopy(body.state_dict())
+    body.fold_norms()  # as a second bfloat16 Predictor on the same model does
+    for name, tensor in body.state_dict().items():
+        assert torch.equal(tensor, once[name]), name

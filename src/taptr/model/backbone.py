@@ -101,7 +101,9 @@ class ResNetBody(nn.Module):
 
         Each convolution gets the norm's scale in its weights and the shift as its bias,
         and the norm becomes an identity: the same function up to float rounding, with
-        other parameter names (a folded trunk is not saved as a checkpoint).
+        other parameter names (a folded trunk is not saved as a checkpoint). Norms already
+        folded are left alone, so folding twice (a second bfloat16 `Predictor` on the same
+        model) changes nothing.
         """
         pairs = [(self, "conv1", "bn1")]
         for stage in (self.layer1, self.layer2, self.layer3, self.layer4):
@@ -116,6 +118,8 @@ class ResNetBody(nn.Module):
                     pairs.append((block.downsample, "0", "1"))
         for owner, conv_name, norm_name in pairs:
             conv, norm = getattr(owner, conv_name), getattr(owner, norm_name)
+            if isinstance(norm, nn.Identity):
+                continue
             weight, bias = fuse_conv_bn_weights(
                 conv.weight.float(),
                 None,
