@@ -21,22 +21,32 @@ import time
 
 import torch
 
-from taptr.apps.benchmark import BenchConfig, _inputs, _track, machine
+from taptr.apps.benchmark import BenchConfig, _inputs, _precision, _track, machine
 from taptr.model.build import build_model
 from taptr.model.execution import EXECUTIONS, Execution
 
 
 def variants() -> dict[str, Execution]:
-    """The executions compared, by name."""
-    fast = EXECUTIONS["fast"]
+    """The executions compared, by name: ``fast`` and ``reference`` with one part swapped.
+
+    Row blocks and oneDNN products are CPU-only already (`taptr.model.ops.row_blocks`,
+    `taptr.model.ops.dense`), so the parts left to tell apart on a GPU are the kernel
+    (with the shared frame tables it enables), the point attention's form and the
+    backbone's memory layout.
+    """
+    fast, reference = EXECUTIONS["fast"], EXECUTIONS["reference"]
     return {
         "fast": fast,
-        "fast, no row blocks": dataclasses.replace(fast, row_block=None, encoder_block=None),
-        "fast, no row blocks, plain layout": dataclasses.replace(
-            fast, row_block=None, encoder_block=None, channels_last=False, in_place_norms=False
+        "fast, grid_sample kernel": dataclasses.replace(
+            fast, kernel="grid_sample", shared_tables=False
         ),
-        "fast, grid_sample kernel": dataclasses.replace(fast, kernel="grid_sample"),
-        "reference": EXECUTIONS["reference"],
+        "fast, N x N point attention": dataclasses.replace(fast, grouped_point_attention=False),
+        "fast, plain layout": dataclasses.replace(fast, channels_last=False, in_place_norms=False),
+        "reference, gather kernel": dataclasses.replace(reference, kernel="gather"),
+        "reference, grouped point attention": dataclasses.replace(
+            reference, grouped_point_attention=True
+        ),
+        "reference": reference,
     }
 
 
@@ -56,6 +66,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--frames-up-front", action="store_true")
+    parser.add_argument("--variants", nargs="+", help="names of the variants to run (default all)")
+    parser.add_argument("--frames-per-call", type=int, nargs="+", default=[1],
+                        help="frames per encoder call, per-window runs")  # fmt: skip
+    parser.add_argument("--dtype", default="float32", choices=("float32", "bfloat16", "float16"),
+                        help="autocast type the tracking runs under (float32: none)")  # fmt: skip
     parser.add_argument("--json", help="write the results to this file")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
@@ -66,6 +81,8 @@ def main(argv: list[str] | None = None) -> int:
     weights = build_model(args.preset).state_dict()
     runs = []
     for name, execution in variants().items():
+        if args.variants and name not in args.variants:
+            continue
         model = build_model(args.preset, execution=execution).eval().to(args.device)
         model.load_state_dict(weights)
         # _track encodes every frame up front when its config says "reference"
@@ -73,22 +90,26 @@ def main(argv: list[str] | None = None) -> int:
         for mode in modes:
             up_front = execution.name == "reference" if mode is None else mode == "up front"
             config = dataclasses.replace(base, execution="reference" if up_front else "fast")
-            runs.append((f"{name} ({'frames up front' if up_front else 'per window'})",
-                         model, config))  # fmt: skip
-    outputs, seconds = {}, {label: [] for label, _, _ in runs}
-    with torch.no_grad():
-        for label, model, config in runs:  # warm-up, and the outputs compared
-            outputs[label] = _track(model, config, video, queries).positions
+            for per_call in [0] if up_front else args.frames_per_call:
+                where = "frames up front" if up_front else f"per window, {per_call} per call"
+                runs.append((f"{name} ({where})", model, config, per_call))
+    outputs, seconds = {}, {run[0]: [] for run in runs}
+    precision = _precision(dataclasses.replace(base, dtype=args.dtype))
+    with torch.no_grad(), precision:
+        for label, model, config, per_call in runs:  # warm-up, and the outputs compared
+            track = _track(model, config, video, queries, frames_per_call=max(per_call, 1))
+            outputs[label] = track.positions.float()
+            print(f"warmed up: {label}", flush=True)
         for _ in range(args.repeats):
-            for label, model, config in runs:
+            for label, model, config, per_call in runs:
                 _sync(args.device)
                 start = time.perf_counter()
-                _track(model, config, video, queries)
+                _track(model, config, video, queries, frames_per_call=max(per_call, 1))
                 _sync(args.device)
                 seconds[label].append((time.perf_counter() - start) / args.frames)
     first = runs[0][0]
     rows = []
-    for label, _, _ in runs:
+    for label, *_ in runs:
         best = min(seconds[label])
         change = float((outputs[label] - outputs[first]).abs().max())
         rows.append({"execution": label, "seconds_per_frame": best, "max_position_change": change})

@@ -36,6 +36,10 @@ os.environ["HF_HUB_OFFLINE"] = "1"
 os.environ["HF_HUB_CACHE"] = os.path.join(
     os.environ.get("TMPDIR", "/tmp"), f"taptr-tests-hub-cache-{os.getpid()}"
 )
+# measured speed choices (`taptr.model.measured`) go to a file of this run, not the user's
+os.environ["TAPTR_MEASURED"] = os.path.join(
+    os.environ.get("TMPDIR", "/tmp"), f"taptr-tests-measured-{os.getpid()}.json"
+)
 if importlib.util.find_spec("huggingface_hub"):
     # it reads these once, at import: import it now, not inside a test that patches them
     importlib.import_module("huggingface_hub.constants")

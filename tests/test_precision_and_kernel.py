@@ -17,7 +17,7 @@ from taptr.cli.model_options import KERNEL_CHOICES, add_model_arguments, load_pr
 from taptr.export import compile as compile_module
 from taptr.io.tracks import load_tracks_npz
 from taptr.io.video import write_video
-from taptr.model import kernel_choice
+from taptr.model import kernel_choice, measured
 from taptr.model.kernel_choice import choose_kernel, time_kernels
 from taptr.model.ops import dense
 
@@ -118,7 +118,7 @@ def test_time_kernels_times_both_and_restores_the_execution(model):
     assert fast.execution.kernel == "gather"
 
 
-def test_measure_keeps_the_faster_kernel(model, monkeypatch):
+def test_measure_keeps_the_faster_kernel(model, monkeypatch, tmp_path):
     monkeypatch.setattr(
         kernel_choice, "time_kernels", lambda m, d, input_size: {"grid_sample": 1.0, "gather": 2.0}
     )
@@ -127,12 +127,17 @@ def test_measure_keeps_the_faster_kernel(model, monkeypatch):
     assert fast.execution.kernel == "grid_sample"
     assert fast.execution.grouped_point_attention  # the rest of the execution is kept
     # auto measures on accelerators (the timing is faked: no GPU is used) ...
+    monkeypatch.setenv("TAPTR_MEASURED", str(tmp_path / "measured.json"))
+    monkeypatch.setattr(measured, "device_name", lambda device: f"fake {device.type}")
     gpu = copy.deepcopy(model).set_execution("fast")
     assert choose_kernel(gpu, torch.device("cuda"), "auto") == "grid_sample"
-    # ... and keeps the execution's kernel on CPU, without measuring
+    # ... once per machine and shape: a second predictor reads the choice ...
     monkeypatch.setattr(
         kernel_choice, "time_kernels", lambda m, d, input_size: pytest.fail("measured")
     )
+    again = copy.deepcopy(model).set_execution("fast")
+    assert choose_kernel(again, torch.device("cuda"), "auto") == "grid_sample"
+    # ... and keeps the execution's kernel on CPU, without measuring
     cpu = copy.deepcopy(model).set_execution("fast")
     assert choose_kernel(cpu, torch.device("cpu"), "auto") == "gather"
 
@@ -161,9 +166,16 @@ def test_the_clis_kernel_choices_are_the_models():
 def test_model_options_reach_the_predictor(monkeypatch, video):
     monkeypatch.setattr("taptr.api.predictor.native_bfloat16", lambda: True)
     assert load_predictor(_model_args()).autocast is None
-    predictor = load_predictor(_model_args("--dtype", "bfloat16", "--kernel", "grid_sample"))
+    # a number of frames per call: nothing is timed (in bfloat16, which this CPU may lack)
+    predictor = load_predictor(
+        _model_args("--dtype", "bfloat16", "--kernel", "grid_sample", "--frames-per-call", "2")
+    )
     assert predictor.autocast == torch.bfloat16
     assert predictor.model.execution.kernel == "grid_sample"
+    assert predictor.frames_per_call == 2
+    for wrong in ("0", "-3", "two"):
+        with pytest.raises(SystemExit):
+            _model_args("--frames-per-call", wrong)
 
     compiled = []
     original = compile_module.compile_model

@@ -9,7 +9,9 @@ h × w the model's input size, S = Σ_l ⌈h/s_l⌉·⌈w/s_l⌉ the encoder tok
     features     = 4 · S · C · W · (2 + 2·D) · FEATURE_SHARE
                    (a window's encoded frames, their stacked copy, and each decoder layer's
                    key and value tables of the window's frames)
-    backbone     = 4 · h · w · BACKBONE_FLOATS[kind] (one frame's trunk activations)
+    backbone     = 4 · h · w · BACKBONE_FLOATS[kind] · F (the trunk activations of the F
+                   frames of one encoder call, `taptr.model.encode_choice`)
+    read ahead   = 4 · S · C · (F − 1) (frames encoded ahead of the window)
     points       = 4 · N · W · (5 · M·L·P·4 + POINT_CHANNELS · C + ffn)
                    (per point and window frame: the deformable sampling's corner indices,
                    weights and combined weights for M heads, L levels, P points and 4
@@ -133,6 +135,7 @@ def estimate_tracking(
     whole_video: bool,
     backward: bool = False,
     history_frames: int | None = None,
+    frames_per_call: int = 1,
 ) -> Estimate:
     """Estimates the peak memory of tracking (see the module's formula).
 
@@ -146,6 +149,9 @@ def estimate_tracking(
             streamed (``taptr track`` on a file that states its length).
         backward: whether a time-reversed pass runs too (a segment of frames held).
         history_frames: TAPTRv3's history limit (0: the whole video; None: the config's).
+        frames_per_call: frames per encoder call (`taptr.model.encode_choice`): the
+            backbone's activations are those of this many frames, and up to this many
+            encoded frames beyond the window are held ahead of it.
     """
     height, width = input_size
     window = config.window_size
@@ -157,7 +163,12 @@ def estimate_tracking(
     held = num_frames if whole_video else min(num_frames, 2 * window + backward * SEGMENT_FRAMES)
     parts = {
         "features": int(4 * tokens * channels * window * (2 + 2 * layers) * FEATURE_SHARE),
-        "backbone": 4 * height * width * BACKBONE_FLOATS.get(config.backbone.kind, 160),
+        "backbone": 4
+        * height
+        * width
+        * BACKBONE_FLOATS.get(config.backbone.kind, 160)
+        * frames_per_call,
+        "read ahead": 4 * tokens * channels * (frames_per_call - 1),
         "points": 4
         * num_points
         * window

@@ -124,7 +124,12 @@ class OnlineTracker:
         device, dtype = self.predictor.device, self.predictor.dtype
         empty = model_queries(torch.zeros(0, 3), 1, 1, device, dtype)  # no points: any size
         tracker = self.engine.start(empty, num_frames, dtype)
-        return StreamState(tracker, num_frames, frame_size, StreamFrames(self.model))
+        return StreamState(
+            tracker,
+            num_frames,
+            frame_size,
+            StreamFrames(self.model, self.predictor.frames_per_call),
+        )
 
     def add_queries(self, state: StreamState, queries: np.ndarray | Tensor) -> list[int]:
         """Adds points given as (N, 3) (t, x, y) pixels; returns their identifiers.

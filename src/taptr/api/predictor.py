@@ -34,6 +34,7 @@ from taptr.config import SUPPORT_KINDS
 from taptr.geometry import normalized_to_pixels
 from taptr.memory_estimate import check_memory, estimate_tracking
 from taptr.model.drivers import run_tracker, step_count
+from taptr.model.encode_choice import choose_frames_per_call
 from taptr.model.frames import EncodedFrames
 from taptr.model.kernel_choice import choose_kernel
 from taptr.model.ops.dense import bfloat16_products, native_bfloat16
@@ -103,6 +104,10 @@ class Predictor:
             ``grid_sample`` on accelerators (`taptr.model.kernel_choice`) and keeps the
             model's execution on CPU (where ``gather`` is measured faster); ``measure``
             measures on any device; ``gather`` or ``grid_sample`` sets it.
+        frames_per_call: frames encoded per encoder call: ``auto`` times the candidates
+            that fit the device's budget at the input size, once per machine and shape,
+            and remembers the fastest (`taptr.model.encode_choice`; one frame per call for
+            512 × 512 on a CPU, without timing); a number sets it. Speed only.
         context_points: pad each video's queries with seeded context points up to this
             many points before the model runs (`taptr.api.context`); they are never
             returned. Default: the model config's (800 for the paper's weights, the points
@@ -131,6 +136,7 @@ class Predictor:
         dtype: torch.dtype = torch.float32,
         autocast: torch.dtype | None = None,
         kernel: str = "auto",
+        frames_per_call: int | str = "auto",
         context_points: int | None = None,
         support_points: str | None = None,
         history_frames: int | None = None,
@@ -188,8 +194,12 @@ class Predictor:
         if not 0 < visibility_threshold < 1:
             raise ValueError(f"visibility_threshold must lie in (0, 1), got {visibility_threshold}")
         self.visibility_threshold = visibility_threshold
-        # last: on accelerators this times the model, which only a valid predictor needs
+        # last: these time the model, which only a valid predictor needs
         choose_kernel(self.model, self.device, kernel, self.input_size)
+        with self.precision():
+            self.frames_per_call = choose_frames_per_call(
+                self.model, self.device, self.input_size, frames_per_call
+            )
 
     @classmethod
     def from_pretrained(
@@ -288,6 +298,7 @@ class Predictor:
             whole_video=False,  # the caller holds the video already
             backward=backward,
             history_frames=self.history_frames,
+            frames_per_call=self.frames_per_call,
         )
         what = f"tracking {points:,} points through {num_frames:,} frames at {self.input_size}"
         knobs = "use a smaller input_size, fewer points or fewer frames"
@@ -386,7 +397,7 @@ class Predictor:
                 self.model,
                 query_set,
                 num_frames,
-                EncodedFrames(self.model, load),
+                EncodedFrames(self.model, load, self.frames_per_call, num_frames),
                 dtype,
                 on_window,
                 history_frames=self.history_frames,

@@ -23,10 +23,10 @@ class StreamFrames:
         ``self(first, last)`` → memory (1, last − first + 1, S, C).
     """
 
-    def __init__(self, model: TAPTR) -> None:
+    def __init__(self, model: TAPTR, frames_per_call: int = 1) -> None:
         self.waiting: dict[int, Tensor] = {}  # frame index → (1, 1, 3, H_m, W_m), not encoded
-        self.encoded = EncodedFrames(model, self._load)
-        self.window: tuple[int, int] | None = None  # frames the cache holds (the last request)
+        # no length: `__call__` lets it read ahead through the frames that have arrived
+        self.encoded = EncodedFrames(model, self._load, frames_per_call)
 
     def add(self, first: int, frames: Tensor) -> None:
         """Holds prepared frames (1, F, 3, H_m, W_m), frames first..first + F − 1."""
@@ -35,7 +35,7 @@ class StreamFrames:
 
     def __call__(self, first: int, last: int) -> FrameFeatures:
         """Memory of frames first..last (inclusive); earlier frames are dropped."""
-        self.window = (first, last)
+        self.encoded.num_frames = max(last, *self.waiting) + 1 if self.waiting else last + 1
         return self.encoded(first, last)
 
     def release(self, before: int) -> None:
@@ -44,9 +44,8 @@ class StreamFrames:
             del self.waiting[frame]
 
     def __len__(self) -> int:
-        """Frames held: waiting ones, and the encoded window `EncodedFrames` keeps."""
-        held = 0 if self.window is None else self.window[1] - self.window[0] + 1
-        return len(self.waiting) + held
+        """Frames held: waiting ones, and the encoded ones `EncodedFrames` keeps."""
+        return len(self.waiting) + len(self.encoded.cache)
 
     def _load(self, first: int, last: int) -> Tensor:
         """Prepared frames first..last, (1, last − first + 1, 3, H_m, W_m), no longer held."""

@@ -39,6 +39,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from taptr.model.measured import cpu_name
 from taptr.model.ops.dense import bfloat16_hardware, linear, onednn_applies
 
 if TYPE_CHECKING:
@@ -69,6 +70,10 @@ class BenchConfig:
         seed: seed of the weights, video and queries.
         history_frames: TAPTRv3's history limit (None: the model's, the whole video).
         compile: compile the model's heavy parts first (`taptr.export.compile_model`).
+        frames_per_call: frames per encoder call of the fast execution, ``auto`` as the
+            predictor chooses (`taptr.model.encode_choice`, measured once per machine and
+            shape before the clock starts) or a number; the reference execution encodes
+            all frames up front.
 
     On CUDA the case runs once untimed before the timed run, so that kernel selection,
     the allocator's first growth and compilation are not counted.
@@ -86,6 +91,7 @@ class BenchConfig:
     seed: int = 0
     history_frames: int | None = None
     compile: bool = False
+    frames_per_call: int | str = "auto"
 
 
 @dataclass
@@ -158,6 +164,7 @@ def _track(
     video: torch.Tensor,
     queries: Any,
     steps: list[float] | None = None,
+    frames_per_call: int = 1,
 ) -> Any:
     from taptr.model.drivers import run_tracker
     from taptr.model.frames import EncodedFrames, PrecomputedFrames
@@ -176,7 +183,7 @@ def _track(
         # the official code's way: the whole video in float, every frame encoded up front
         frames = PrecomputedFrames(model.encode(load(0, config.frames - 1), chunk_size=24))
     else:
-        frames = EncodedFrames(model, load)
+        frames = EncodedFrames(model, load, frames_per_call, config.frames)
     marks = [time.perf_counter()]
 
     def on_step() -> None:
@@ -200,6 +207,7 @@ def _track(
 def run_case(config: BenchConfig, positions_out: str | None = None) -> BenchResult:
     """Runs one case in this process (use `run_isolated` for a clean peak-memory reading)."""
     from taptr.model.build import build_model
+    from taptr.model.encode_choice import choose_frames_per_call
 
     torch.set_num_threads(config.threads)
     torch.manual_seed(config.seed)
@@ -212,15 +220,19 @@ def run_case(config: BenchConfig, positions_out: str | None = None) -> BenchResu
         compile_model(model)
     video, queries = _inputs(config)
     autocast = _precision(config)
+    with _precision(config):
+        per_call = choose_frames_per_call(
+            model, torch.device(config.device), config.size, config.frames_per_call
+        )
     if config.device.startswith("cuda"):
         with torch.no_grad(), _precision(config):
-            _track(model, config, video, queries)
+            _track(model, config, video, queries, frames_per_call=per_call)
         torch.cuda.synchronize()
         torch.cuda.reset_peak_memory_stats()
     steps: list[float] = []
     with torch.no_grad(), autocast, _stage_timer(model, config.device) as stages:
         start = time.perf_counter()
-        output = _track(model, config, video, queries, steps)
+        output = _track(model, config, video, queries, steps, per_call)
         if config.device.startswith("cuda"):
             torch.cuda.synchronize()
         elapsed = time.perf_counter() - start
@@ -242,7 +254,7 @@ def run_case(config: BenchConfig, positions_out: str | None = None) -> BenchResu
         peak_cuda=peak_cuda,
         parameters=sum(p.numel() for p in model.parameters()),
         flops=flops,
-        extra={"step_seconds": steps},
+        extra={"step_seconds": steps, "frames_per_call": per_call},
     )
 
 
@@ -337,22 +349,6 @@ def compare_types(base: BenchConfig, dtypes: list[str]) -> dict[str, Any]:
 
 def _with(config: BenchConfig, **changes: Any) -> BenchConfig:
     return BenchConfig(**{**asdict(config), **changes})
-
-
-def cpu_name(cpuinfo: str | os.PathLike[str] = "/proc/cpuinfo") -> str:
-    """The CPU's model name where Linux reports it, else the architecture.
-
-    Recorded because the same PyTorch build runs its float32 products at very different
-    rates on Intel and AMD CPUs (`taptr.model.ops.dense`).
-    """
-    try:
-        for line in Path(cpuinfo).read_text().splitlines():
-            key, _, value = line.partition(":")
-            if key.strip() == "model name" and value.strip():
-                return value.strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 def machine() -> dict[str, Any]:

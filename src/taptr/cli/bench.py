@@ -8,6 +8,7 @@ import sys
 
 from taptr.cli.options import (
     add_device_argument,
+    add_frames_per_call_argument,
     check_at_least,
     check_device,
     check_input_size,
@@ -78,6 +79,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         action="store_true",
         help="torch.compile the model's heavy parts first (compilation is not timed on CUDA)",
     )
+    add_frames_per_call_argument(parser)
     parser.add_argument(
         "--execution",
         choices=["both", "fast", "reference"],
@@ -130,6 +132,7 @@ def run(args: argparse.Namespace) -> int:
             flops=args.flops,
             history_frames=history,
             compile=args.compile,
+            frames_per_call=args.frames_per_call,
         )
         if args.execution == "both":
             case = compare(config)

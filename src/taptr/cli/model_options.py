@@ -11,6 +11,7 @@ from taptr.cli.options import (
     MAX_INPUT_SIDE,
     MIN_INPUT_SIDE,
     add_device_argument,
+    add_frames_per_call_argument,
     check_at_least,
     check_device,
     check_input_size,
@@ -94,6 +95,7 @@ def add_model_arguments(parser: argparse.ArgumentParser, max_frames: int | None 
         help="deformable-attention kernel: auto measures gather against grid_sample on GPUs "
         "and uses gather on CPU; measure times both on any device (default: auto)",
     )
+    add_frames_per_call_argument(parser)
     parser.add_argument(
         "--compile",
         action="store_true",
@@ -154,6 +156,7 @@ def load_predictor(args: argparse.Namespace) -> Predictor:
         history_frames=args.history_frames,
         autocast=autocast_type(args.dtype),
         kernel=args.kernel,
+        frames_per_call=args.frames_per_call,
     )
     if args.compile:
         from taptr.export.compile import compile_model

@@ -34,6 +34,26 @@ def add_device_argument(parser: argparse.ArgumentParser, default: str | None = N
     )
 
 
+def add_frames_per_call_argument(parser: argparse.ArgumentParser) -> None:
+    """``--frames-per-call auto|N`` (`taptr.model.encode_choice`)."""
+    parser.add_argument(
+        "--frames-per-call",
+        type=_frames_per_call,
+        default="auto",
+        metavar="auto|N",
+        help="frames per encoder call; auto times the sizes that fit this device once per "
+        "machine and input size and remembers the fastest (speed only; default: auto)",
+    )
+
+
+def _frames_per_call(value: str) -> int | str:
+    if value == "auto":
+        return value
+    if not value.isdigit() or int(value) < 1:
+        raise argparse.ArgumentTypeError(f"expected auto or a whole number >= 1, got {value!r}")
+    return int(value)
+
+
 def check_device(device: str | None, flag: str = "--device") -> None:
     """Raises a ValueError unless ``device`` names a device this machine has (None: auto).
 

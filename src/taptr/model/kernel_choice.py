@@ -4,7 +4,8 @@ Both kernels compute the same sums (`taptr.model.ops`), so the choice changes sp
 On CPU ``gather`` is several times faster (docs/BENCHMARKS.md); on GPUs the balance depends
 on the chip and the sizes (``grid_sample`` is one fused CUDA kernel, ``gather`` is
 ``embedding_bag``), so there the predictor times the model's own encoder on a frame of its
-input size with each kernel and keeps the faster one.
+input size with each kernel and keeps the faster one, remembered per machine and shape
+(`taptr.model.measured`) so that a second run measures nothing.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from collections.abc import Callable
 import torch
 
 from taptr.model.execution import Kernel
+from taptr.model.measured import choice_key, remembered
 from taptr.model.ops import KERNELS
 from taptr.model.taptr import TAPTR
 
@@ -74,6 +76,11 @@ def time_kernels(
     return seconds
 
 
+def _fastest_kernel(model: TAPTR, device: torch.device, input_size: tuple[int, int] | None) -> str:
+    seconds = time_kernels(model, device, input_size=input_size)
+    return min(seconds, key=seconds.__getitem__)
+
+
 def choose_kernel(
     model: TAPTR,
     device: torch.device,
@@ -85,8 +92,9 @@ def choose_kernel(
     Args:
         model: the network on ``device``; its execution keeps every other setting.
         device: where it runs.
-        choice: ``auto`` (measure on accelerators, keep the execution's kernel on CPU),
-            ``measure`` (measure on any device), or ``gather`` / ``grid_sample``.
+        choice: ``auto`` (measure on accelerators once per machine and shape, then
+            remember; keep the execution's kernel on CPU), ``measure`` (measure on any
+            device, every time), or ``gather`` / ``grid_sample``.
         input_size: (height, width) the model will see; default: the model config's.
 
     Raises:
@@ -97,9 +105,14 @@ def choose_kernel(
     kernel = choice
     if choice == "auto" and device.type == "cpu":
         kernel = model.execution.kernel
-    elif choice in ("auto", "measure"):
-        seconds = time_kernels(model, device, input_size=input_size)
-        kernel = min(seconds, key=seconds.__getitem__)
+    elif choice == "measure":
+        kernel = _fastest_kernel(model, device, input_size)
+    elif choice == "auto":
+        size = input_size or (model.config.input_size if model.config else (256, 256))
+        dtype = next(model.input_projections.parameters()).dtype
+        shape = f"{size[0]}x{size[1]} {dtype} {model.execution.name}"
+        key = choice_key("deformable-attention kernel", device, repr(model.config), shape)
+        kernel = remembered(key, lambda: _fastest_kernel(model, device, input_size))
     if kernel != model.execution.kernel:
         model.set_execution(dataclasses.replace(model.execution, kernel=kernel))
     return kernel  # type: ignore[return-value]

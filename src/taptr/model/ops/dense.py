@@ -88,6 +88,11 @@ _PRODUCT_TYPE: contextvars.ContextVar[torch.dtype] = contextvars.ContextVar(
 )
 
 
+def product_type() -> torch.dtype:
+    """The type `linear`'s oneDNN products run in here: bfloat16 inside `bfloat16_products`."""
+    return _PRODUCT_TYPE.get()
+
+
 @contextlib.contextmanager
 def bfloat16_products() -> Iterator[None]:
     """Runs `linear`'s oneDNN products in bfloat16 inside the block (see the module notes).

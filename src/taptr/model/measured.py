@@ -1,0 +1,100 @@
+"""Speed-only choices measured once per machine and shape, and remembered on disk.
+
+Some settings change how fast the model runs and nothing else (which deformable-attention
+kernel, how many frames per encoder call), and which is faster depends on the chip, the
+thread count and the frame size: on a GPU one frame per encoder call is launch-bound, on a
+CPU large frames want one at a time to stay in cache and small ones want a few
+(docs/BENCHMARKS.md). Such a choice is timed on the machine the first time a shape asks
+for it and written, under a key naming the machine, the model and the shape, to a small
+JSON file: ``$TAPTR_MEASURED`` if set, else ``$XDG_CACHE_HOME/taptr/measured.json`` (or
+``~/.cache/taptr/measured.json``). A second run reads it and measures nothing.
+
+A file that cannot be read or written costs only the measurement: the choice is then
+measured again and tracking goes on.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import platform
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from taptr.io.atomic import atomic_path
+
+
+def cpu_name(cpuinfo: str | os.PathLike[str] = "/proc/cpuinfo") -> str:
+    """The CPU's model name where Linux reports it, else the architecture.
+
+    Part of every key, because the same PyTorch build runs its float32 products at very
+    different rates on Intel and AMD CPUs (`taptr.model.ops.dense`).
+    """
+    try:
+        for line in Path(cpuinfo).read_text().splitlines():
+            key, _, value = line.partition(":")
+            if key.strip() == "model name" and value.strip():
+                return value.strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def measured_path() -> Path:
+    """The file the measured choices are kept in."""
+    explicit = os.environ.get("TAPTR_MEASURED")
+    if explicit:
+        return Path(explicit)
+    cache = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(cache) / "taptr" / "measured.json"
+
+
+def device_name(device: torch.device) -> str:
+    """What runs the model: the accelerator's name, or the CPU's name and thread count."""
+    if device.type == "cuda":
+        return torch.cuda.get_device_name(device)
+    if device.type == "cpu":
+        capability = torch.backends.cpu.get_cpu_capability()
+        return f"{cpu_name()} ({capability}, {torch.get_num_threads()} threads)"
+    return device.type
+
+
+def choice_key(what: str, device: torch.device, model_signature: str, shape: str) -> str:
+    """The key a choice is kept under: the choice, machine, torch, model and shape."""
+    model = hashlib.sha1(model_signature.encode()).hexdigest()[:12]
+    return f"{what} | {device_name(device)} | torch {torch.__version__} | {model} | {shape}"
+
+
+def _read(path: Path) -> dict[str, Any]:
+    try:
+        entries = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+    return entries if isinstance(entries, dict) else {}
+
+
+def remembered(key: str, measure: Callable[[], Any], path: Path | None = None) -> Any:
+    """The choice kept under ``key``, measured (and kept) the first time it is asked for.
+
+    Args:
+        key: `choice_key` of the choice.
+        measure: times the candidates and returns the winner (a JSON value).
+        path: the file; default `measured_path`.
+    """
+    path = path or measured_path()
+    entries = _read(path)
+    if key in entries:
+        return entries[key]
+    value = measure()
+    entries = _read(path)  # another process may have written meanwhile
+    entries[key] = value
+    try:
+        with atomic_path(path) as tmp:
+            tmp.write_text(json.dumps(entries, indent=1, sort_keys=True))
+    except OSError:
+        pass  # a read-only home: measured again next time, tracking goes on
+    return value
