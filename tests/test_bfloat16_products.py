@@ -102,3 +102,28 @@ def test_products_come_back_in_float32_except_between_mlp_layers():
     exact = torch.nn.functional.linear(x, weight, bias)
     torch.testing.assert_close(out, exact, rtol=0.05, atol=0.05)
     assert (hidden >= 0).all()
+
+
+def test_the_decoders_tables_are_bfloat16_and_reuse_their_buffers():
+    from taptr.model.frame_tables import FrameTables
+
+    generator = torch.Generator().manual_seed(0)
+    projection = (torch.nn.Linear(32, 32), torch.nn.Linear(32, 32))
+    memory = torch.randn(4, 50, 32, generator=generator)  # frames 0..3
+    store = FrameTables()
+    store.start_window(0, 3, keep_from=2)
+    with torch.no_grad(), dense.bfloat16_products():
+        pairs = [
+            (keys.clone(), values.clone())
+            for keys, values in store.images(0, memory, *projection, onednn=True)
+        ]
+        first_kept = {store._kept[(0, 0, frame)].data_ptr() for frame in (2, 3)}
+        store.start_window(2, 5, keep_from=4)
+        list(store.images(0, torch.cat((memory[2:], memory[:2])), *projection, onednn=True))
+    for image, (keys, values) in enumerate(pairs):
+        assert keys.dtype == values.dtype == torch.bfloat16  # half the bytes to gather
+        exact = projection[0](memory[image]), projection[1](memory[image])
+        torch.testing.assert_close(keys.float(), exact[0], rtol=0.02, atol=0.02)
+        torch.testing.assert_close(values.float(), exact[1], rtol=0.02, atol=0.02)
+    # frames 4 and 5 were written over the bfloat16 pairs frames 2 and 3 released
+    assert {store._kept[(0, 0, frame)].data_ptr() for frame in (4, 5)} == first_kept

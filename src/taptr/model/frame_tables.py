@@ -21,12 +21,12 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
-from taptr.model.ops.dense import apply_linear, onednn_applies
+from taptr.model.ops.dense import apply_linear, bfloat16_mode, bfloat16_table, onednn_applies
 from taptr.model.ops.row_blocks import autocasting
 
 KeyValue = tuple[Tensor, Tensor]
 """One image's key and value tables, each (S, C): the memory's rows through one layer's
-key and value projections, bias included."""
+key and value projections, bias included (bfloat16 inside `dense.bfloat16_products`)."""
 
 
 class FrameTables:
@@ -111,27 +111,42 @@ class FrameTables:
     def _project(
         self, memory: Tensor, key_proj: nn.Linear, value_proj: nn.Linear, onednn: bool
     ) -> Tensor:
-        """(S, C) memory → its keys and values (2, S, C), bias included, without gradients."""
+        """(S, C) memory → its keys and values (2, S, C), bias included, without gradients.
+
+        Inside `bfloat16_products` the pair is bfloat16 (`dense.bfloat16_table`): the
+        memory is converted once for both products, and the gathers read half the bytes.
+        """
         self.projections += 1
-        pair = self._empty((2, *memory.shape), memory)
         with torch.no_grad():
+            if onednn and bfloat16_mode() and onednn_applies(memory, key_proj.weight):
+                pair = self._empty((2, *memory.shape), memory, torch.bfloat16)
+                memory16 = memory.to(torch.bfloat16)
+                bfloat16_table(key_proj, memory16, pair[0])
+                bfloat16_table(value_proj, memory16, pair[1])
+                return pair
+            pair = self._empty((2, *memory.shape), memory)
             for projection, table in zip((key_proj, value_proj), pair, strict=True):
                 if onednn and onednn_applies(memory, projection.weight):
-                    # oneDNN writes a fresh tensor: copied into the reused pair (see __init__),
-                    # converted on the way where the product ran in bfloat16
-                    table.copy_(apply_linear(projection, memory, onednn=True, keep_type=True))
+                    # oneDNN writes a fresh tensor: copied into the reused pair (see __init__)
+                    table.copy_(apply_linear(projection, memory, onednn=True))
                 elif autocasting(memory):
                     table.copy_(projection(memory))
                 else:
                     torch.addmm(projection.bias, memory, projection.weight.t(), out=table)
         return pair
 
-    def _empty(self, shape: tuple[int, ...], like: Tensor) -> Tensor:
-        """A spare tensor of ``shape``, typed and placed like ``like``, else a new one."""
+    def _empty(
+        self, shape: tuple[int, ...], like: Tensor, dtype: torch.dtype | None = None
+    ) -> Tensor:
+        """A spare tensor of ``shape``, else a new one.
+
+        It is placed like ``like`` and typed ``dtype`` (default: ``like``'s type).
+        """
+        dtype = dtype or like.dtype
         for index, spare in enumerate(self._spare):
-            if spare.shape == shape and spare.dtype == like.dtype and spare.device == like.device:
+            if spare.shape == shape and spare.dtype == dtype and spare.device == like.device:
                 return self._spare.pop(index)
-        return like.new_empty(shape)
+        return like.new_empty(shape, dtype=dtype)
 
 
 class LayerTables(NamedTuple):

@@ -21,10 +21,13 @@ Inside `bfloat16_products`, on CPUs that multiply bfloat16 natively (AVX512-BF16
 `native_bfloat16`), those oneDNN products take bfloat16 inputs and weights (a bfloat16
 copy of each weight, made once) and accumulate in float32; their results come back as
 float32, except where the caller reads them in bfloat16 anyway or converts them itself
-(``keep_type``: between the layers of an MLP, into row blocks and the decoder's float32
-tables). Everything that is not a product (norms, softmax, sampling, sigmoids, the
-position update's sums) stays in float32. The backbone's convolutions run in bfloat16 too
-where the model's trunk is stored so (`taptr.model.taptr.TAPTR.bfloat16_trunk`).
+(``keep_type``: between the layers of an MLP, into row blocks). The decoder's key and value
+tables are kept in bfloat16 (`bfloat16_table`): half their memory, half the bytes their
+row gathers read; the sampled keys and values come back to float32 before the scores.
+Everything else that is not a product (norms, softmax, the sampling weights' sums,
+sigmoids, the position update's sums) stays in float32. The backbone's convolutions run
+in bfloat16 too where the model's trunk is stored so
+(`taptr.model.taptr.TAPTR.bfloat16_trunk`).
 """
 
 from __future__ import annotations
@@ -193,6 +196,20 @@ def linear(
         return torch.ops.mkldnn._linear_pointwise(x, weight, bias, attr, [], "")
     out = F.linear(x, weight, bias)
     return F.relu(out) if relu else out
+
+
+def bfloat16_table(layer: nn.Linear, x: Tensor, out: Tensor) -> Tensor:
+    """``layer(x)`` written into ``out`` in bfloat16, inside `bfloat16_products`.
+
+    For the decoder's key and value tables (`taptr.model.frame_tables`): kept in bfloat16
+    they take half the memory and their row gathers read half the bytes, and a product
+    written into a reused buffer skips the page faults of a fresh one that size.
+
+    Shape:
+        x (S, in) float32 or bfloat16; out (S, out_features) bfloat16.
+    """
+    bias = _bfloat16_copy(layer.bias)
+    return torch.addmm(bias, x.to(torch.bfloat16), _bfloat16_copy(layer.weight).t(), out=out)
 
 
 def apply_linear(

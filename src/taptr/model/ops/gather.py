@@ -274,6 +274,8 @@ def gather_key_aware_attn(
     rows, corner_weights = bilinear_corners(locations, spatial_shapes, border=border)
     # sampled keys are (B, Q, M, L·P, D): bound their memory by taking queries in chunks
     chunk = max(1, CHUNK_ELEMENTS // (batch * heads * levels * points * channels))
+    # a bfloat16 table (`taptr.model.frame_tables`) gives bfloat16 samples: the scores,
+    # their softmax and the output are float32 all the same
     logits = (
         torch.cat(
             [
@@ -284,7 +286,7 @@ def gather_key_aware_attn(
                         key_table,
                         rows[:, start : start + chunk],
                         corner_weights[:, start : start + chunk],
-                    ),
+                    ).to(queries.dtype),
                 )
                 for start in range(0, num_queries, chunk)
             ],
@@ -293,7 +295,7 @@ def gather_key_aware_attn(
         / channels**0.5
     )  # (B, Q, M, L·P)
     combined = corner_weights * logits.softmax(-1).unsqueeze(-1)  # (B, Q, M, L·P, 4)
-    out = gather_sum(value_table, rows.flatten(-2), combined.flatten(-2))
+    out = gather_sum(value_table, rows.flatten(-2), combined.flatten(-2)).to(queries.dtype)
     return out.view(batch, num_queries, heads * channels), logits.view(
         batch, num_queries, heads, levels, points
     )
