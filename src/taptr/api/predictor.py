@@ -33,6 +33,7 @@ from taptr.api.support import GRID_POINTS, LOCAL_OFFSETS, with_support
 from taptr.config import SUPPORT_KINDS
 from taptr.geometry import normalized_to_pixels
 from taptr.memory_estimate import check_memory, estimate_tracking
+from taptr.model.cpu_choice import choose_cpu_execution
 from taptr.model.drivers import run_tracker, step_count
 from taptr.model.encode_choice import choose_frames_per_call
 from taptr.model.frames import EncodedFrames
@@ -107,7 +108,10 @@ class Predictor:
         frames_per_call: frames encoded per encoder call: ``auto`` times the candidates
             that fit the device's budget at the input size, once per machine and shape,
             and remembers the fastest (`taptr.model.encode_choice`; one frame per call for
-            512 × 512 on a CPU, without timing); a number sets it. Speed only.
+            512 × 512 on a CPU, without timing); a number sets it. Speed only. On a CPU
+            the predictor also times, once per machine and shape, whether the fast
+            execution's linear layers run faster through oneDNN or the BLAS and its
+            frames channels-last or not (`taptr.model.cpu_choice`).
         context_points: pad each video's queries with seeded context points up to this
             many points before the model runs (`taptr.api.context`); they are never
             returned. Default: the model config's (800 for the paper's weights, the points
@@ -197,6 +201,8 @@ class Predictor:
         # last: these time the model, which only a valid predictor needs
         choose_kernel(self.model, self.device, kernel, self.input_size)
         with self.precision():
+            if self.device.type == "cpu":
+                choose_cpu_execution(self.model, self.input_size)
             self.frames_per_call = choose_frames_per_call(
                 self.model, self.device, self.input_size, frames_per_call
             )

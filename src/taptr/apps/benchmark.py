@@ -207,6 +207,7 @@ def _track(
 def run_case(config: BenchConfig, positions_out: str | None = None) -> BenchResult:
     """Runs one case in this process (use `run_isolated` for a clean peak-memory reading)."""
     from taptr.model.build import build_model
+    from taptr.model.cpu_choice import choose_cpu_execution
     from taptr.model.encode_choice import choose_frames_per_call
 
     torch.set_num_threads(config.threads)
@@ -221,6 +222,8 @@ def run_case(config: BenchConfig, positions_out: str | None = None) -> BenchResu
     video, queries = _inputs(config)
     autocast = _precision(config)
     with _precision(config):
+        if config.device == "cpu" and config.execution == "fast":
+            choose_cpu_execution(model, config.size)  # as the predictor does
         per_call = choose_frames_per_call(
             model, torch.device(config.device), config.size, config.frames_per_call
         )
@@ -254,7 +257,12 @@ def run_case(config: BenchConfig, positions_out: str | None = None) -> BenchResu
         peak_cuda=peak_cuda,
         parameters=sum(p.numel() for p in model.parameters()),
         flops=flops,
-        extra={"step_seconds": steps, "frames_per_call": per_call},
+        extra={
+            "step_seconds": steps,
+            "frames_per_call": per_call,
+            "onednn_linear": model.execution.onednn_linear,
+            "channels_last": model.execution.channels_last,
+        },
     )
 
 

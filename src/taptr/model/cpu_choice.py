@@ -1,0 +1,112 @@
+"""The CPU execution's product library and frame layout, chosen by measuring them there.
+
+Two settings of the ``fast`` execution were tuned on particular CPUs and change speed only:
+
+- **Products**: oneDNN inner products (`taptr.model.ops.dense`) ran the paper model's
+  linear layers at twice MKL's rate on the AMD EPYC measured (docs/BENCHMARKS.md); on Intel
+  CPUs MKL may match or pass it. Timed on the model's own encoder FFN, a block of rows.
+- **Layout**: channels-last frames into the backbone, used from `CHANNELS_LAST_MIN_PIXELS`
+  up (faster there on the AMX Xeon measured, slower below). Timed on the backbone at the
+  input size where the rule would use it; below the threshold frames stay as they are.
+
+Each is timed once per machine, model and input size and remembered
+(`taptr.model.measured`). Inside `dense.bfloat16_products` the products stay oneDNN's,
+the only path with bfloat16 kernels.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable
+
+import torch
+
+from taptr.model.execution import CHANNELS_LAST_MIN_PIXELS, Execution
+from taptr.model.measured import choice_key, remembered
+from taptr.model.ops.dense import bfloat16_mode, onednn_available
+from taptr.model.ops.row_blocks import ENCODER_BLOCK
+from taptr.model.taptr import TAPTR
+
+TOLERANCE = 0.03
+"""The other setting must be this much faster to replace the execution's own."""
+
+
+def best_time(run: Callable[[], object], repeats: int = 3) -> float:
+    """Seconds of the fastest of ``repeats`` calls, after one untimed call."""
+    run()
+    best = float("inf")
+    for _ in range(repeats):
+        start = time.perf_counter()
+        run()
+        best = min(best, time.perf_counter() - start)
+    return best
+
+
+def _faster(own: float, other: float) -> bool:
+    return other < own * (1 - TOLERANCE)
+
+
+@torch.no_grad()
+def time_products(model: TAPTR) -> dict[bool, float]:
+    """Seconds of the first encoder layer's FFN on a block of rows, by ``onednn_linear``."""
+    ffn = model.encoder.layers[0].ffn
+    dtype = next(model.input_projections.parameters()).dtype
+    rows = torch.randn(ENCODER_BLOCK, ffn.layers[0].in_features, dtype=dtype)
+    return {
+        onednn: best_time(lambda o=onednn: ffn(rows, dataclasses.replace(model.execution,
+                                                                         onednn_linear=o)))
+        for onednn in (True, False)
+    }  # fmt: skip
+
+
+@torch.no_grad()
+def time_layouts(model: TAPTR, input_size: tuple[int, int]) -> dict[bool, float]:
+    """Seconds of `TAPTR.feature_maps` on one frame, by ``channels_last``."""
+    dtype = next(model.input_projections.parameters()).dtype
+    frame = torch.randn(1, 3, *input_size, dtype=dtype)
+    own = model.execution
+    seconds = {}
+    try:
+        for layout in (True, False):
+            model.set_execution(dataclasses.replace(own, channels_last=layout))
+            seconds[layout] = best_time(lambda: model.feature_maps(frame))
+    finally:
+        model.set_execution(own)
+    return seconds
+
+
+def choose_cpu_execution(model: TAPTR, input_size: tuple[int, int]) -> Execution:
+    """Sets the CPU execution's products and layout to the faster, measured; returns it.
+
+    Only the settings the execution uses are questioned (an execution without oneDNN
+    products or channels-last is left as it is), and only where both choices would run.
+    """
+    execution = model.execution
+    signature = repr(model.config)
+    products = execution.onednn_linear and onednn_available() and not bfloat16_mode()
+    if products and model.encoder.layers:
+        key = choice_key("oneDNN products", torch.device("cpu"), signature, "encoder FFN")
+
+        def measure_products() -> bool:
+            seconds = time_products(model)
+            return not _faster(seconds[True], seconds[False])
+
+        execution = dataclasses.replace(
+            execution, onednn_linear=bool(remembered(key, measure_products))
+        )
+    pixels = input_size[0] * input_size[1]
+    if execution.channels_last and pixels >= CHANNELS_LAST_MIN_PIXELS:
+        trunk = next(model.backbone.parameters()).dtype
+        shape = f"{input_size[0]}x{input_size[1]} trunk {trunk}"
+        key = choice_key("channels-last frames", torch.device("cpu"), signature, shape)
+
+        def measure_layout() -> bool:
+            seconds = time_layouts(model, input_size)
+            return not _faster(seconds[True], seconds[False])
+
+        execution = dataclasses.replace(
+            execution, channels_last=bool(remembered(key, measure_layout))
+        )
+    model.set_execution(execution)
+    return execution
