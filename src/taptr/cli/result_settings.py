@@ -11,7 +11,8 @@ Recorded: the model (name or file, and a file's SHA-256, so a retrained checkpoi
 under the same name counts as another model), its visibility threshold, the queries (the
 grid, a digest of the listed points, or a digest of the mask file), and the options that
 change what is computed or written. Not recorded: where or how fast the model runs
-(``--device``, ``--kernel``, ``--compile``), which give the same tracks up to rounding.
+(``--device``, ``--kernel``, ``--frames-per-call``, ``--compile``), which give the same
+tracks up to rounding.
 """
 
 from __future__ import annotations
