@@ -19,9 +19,10 @@ import torch
 
 from taptr.apps.benchmark import machine
 from taptr.model.build import build_model
-from taptr.model.cpu_choice import TOLERANCE, time_layouts, time_products
+from taptr.model.cpu_choice import time_layouts, time_products
 from taptr.model.encode_choice import candidates, fastest, time_frames_per_call
 from taptr.model.execution import CHANNELS_LAST_MIN_PIXELS
+from taptr.model.measured import TOLERANCE
 from taptr.model.ops.dense import bfloat16_products
 
 

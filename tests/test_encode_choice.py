@@ -206,3 +206,9 @@ def test_a_stream_reads_ahead_through_arrived_frames_only(model, video, monkeypa
     assert counting.calls[-1] == 2  # 10 and 11 in one call
     expected = EncodedFrames(model, video)(8, 11).memory
     torch.testing.assert_close(streamed, expected, atol=1e-5, rtol=1e-5)
+
+
+def test_best_seconds_skips_the_first_call_and_keeps_the_fastest():
+    calls, ticks = [], iter([0.0, 5.0, 10.0, 12.0, 20.0, 23.0])
+    seconds = measured.best_seconds(lambda: calls.append(1), CPU, 3, clock=lambda: next(ticks))
+    assert len(calls) == 4 and seconds == 2.0  # 5, 2 and 3 ticks: the warm-up is not timed

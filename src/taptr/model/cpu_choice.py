@@ -17,30 +17,16 @@ the only path with bfloat16 kernels.
 from __future__ import annotations
 
 import dataclasses
-import time
-from collections.abc import Callable
 
 import torch
 
 from taptr.model.execution import CHANNELS_LAST_MIN_PIXELS, Execution
-from taptr.model.measured import choice_key, remembered
+from taptr.model.measured import TOLERANCE, best_seconds, choice_key, remembered
 from taptr.model.ops.dense import bfloat16_mode, onednn_available
 from taptr.model.ops.row_blocks import ENCODER_BLOCK
 from taptr.model.taptr import TAPTR
 
-TOLERANCE = 0.03
-"""The other setting must be this much faster to replace the execution's own."""
-
-
-def best_time(run: Callable[[], object], repeats: int = 3) -> float:
-    """Seconds of the fastest of ``repeats`` calls, after one untimed call."""
-    run()
-    best = float("inf")
-    for _ in range(repeats):
-        start = time.perf_counter()
-        run()
-        best = min(best, time.perf_counter() - start)
-    return best
+CPU = torch.device("cpu")
 
 
 def _faster(own: float, other: float) -> bool:
@@ -53,11 +39,11 @@ def time_products(model: TAPTR) -> dict[bool, float]:
     ffn = model.encoder.layers[0].ffn
     dtype = next(model.input_projections.parameters()).dtype
     rows = torch.randn(ENCODER_BLOCK, ffn.layers[0].in_features, dtype=dtype)
+    settings = {o: dataclasses.replace(model.execution, onednn_linear=o) for o in (True, False)}
     return {
-        onednn: best_time(lambda o=onednn: ffn(rows, dataclasses.replace(model.execution,
-                                                                         onednn_linear=o)))
-        for onednn in (True, False)
-    }  # fmt: skip
+        onednn: best_seconds(lambda e=execution: ffn(rows, e), CPU)
+        for onednn, execution in settings.items()
+    }
 
 
 @torch.no_grad()
@@ -70,7 +56,7 @@ def time_layouts(model: TAPTR, input_size: tuple[int, int]) -> dict[bool, float]
     try:
         for layout in (True, False):
             model.set_execution(dataclasses.replace(own, channels_last=layout))
-            seconds[layout] = best_time(lambda: model.feature_maps(frame))
+            seconds[layout] = best_seconds(lambda: model.feature_maps(frame), CPU)
     finally:
         model.set_execution(own)
     return seconds
@@ -86,7 +72,7 @@ def choose_cpu_execution(model: TAPTR, input_size: tuple[int, int]) -> Execution
     signature = repr(model.config)
     products = execution.onednn_linear and onednn_available() and not bfloat16_mode()
     if products and model.encoder.layers:
-        key = choice_key("oneDNN products", torch.device("cpu"), signature, "encoder FFN")
+        key = choice_key("oneDNN products", CPU, signature, "encoder FFN")
 
         def measure_products() -> bool:
             seconds = time_products(model)
@@ -99,7 +85,7 @@ def choose_cpu_execution(model: TAPTR, input_size: tuple[int, int]) -> Execution
     if execution.channels_last and pixels >= CHANNELS_LAST_MIN_PIXELS:
         trunk = next(model.backbone.parameters()).dtype
         shape = f"{input_size[0]}x{input_size[1]} trunk {trunk}"
-        key = choice_key("channels-last frames", torch.device("cpu"), signature, shape)
+        key = choice_key("channels-last frames", CPU, signature, shape)
 
         def measure_layout() -> bool:
             seconds = time_layouts(model, input_size)

@@ -21,7 +21,7 @@ from collections.abc import Callable
 import torch
 
 from taptr.memory_estimate import BACKBONE_FLOATS
-from taptr.model.measured import choice_key, remembered
+from taptr.model.measured import TOLERANCE, best_seconds, choice_key, remembered
 from taptr.model.ops.dense import product_type
 from taptr.model.taptr import TAPTR
 
@@ -36,9 +36,6 @@ MEMORY_SHARE = 1 / 8
 
 MAX_FRAMES_PER_CALL = 16
 """The largest candidate."""
-
-TOLERANCE = 0.03
-"""A larger call must be this much faster per frame to be chosen (it holds more memory)."""
 
 
 def candidates(
@@ -72,11 +69,6 @@ def _device_memory(device: torch.device) -> int | None:
     return None
 
 
-def _synchronize(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-
-
 @torch.no_grad()
 def time_frames_per_call(
     model: TAPTR,
@@ -95,15 +87,8 @@ def time_frames_per_call(
     seconds = {}
     for size in sizes:
         frames = torch.randn(size, 3, *input_size, device=device, dtype=dtype)
-        model.encode_images(frames)
-        best = float("inf")
-        for _ in range(repeats):
-            _synchronize(device)
-            start = clock()
-            model.encode_images(frames)
-            _synchronize(device)
-            best = min(best, clock() - start)
-        seconds[size] = best / size
+        call = best_seconds(lambda f=frames: model.encode_images(f), device, repeats, clock)
+        seconds[size] = call / size
     return seconds
 
 

@@ -17,19 +17,12 @@ from collections.abc import Callable
 import torch
 
 from taptr.model.execution import Kernel
-from taptr.model.measured import choice_key, remembered
+from taptr.model.measured import best_seconds, choice_key, remembered
 from taptr.model.ops import KERNELS
 from taptr.model.taptr import TAPTR
 
 CHOICES = ("auto", "measure", *KERNELS)
 """What `choose_kernel` accepts: ``auto``, ``measure`` or a kernel's name."""
-
-
-def _synchronize(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-    elif device.type == "mps":
-        torch.mps.synchronize()
 
 
 @torch.no_grad()
@@ -64,15 +57,9 @@ def time_kernels(
     seconds = {}
     for kernel in KERNELS:
         execution = dataclasses.replace(model.execution, kernel=kernel)
-        model.encoder(maps, execution)
-        best = float("inf")
-        for _ in range(repeats):
-            _synchronize(device)
-            start = clock()
-            model.encoder(maps, execution)
-            _synchronize(device)
-            best = min(best, clock() - start)
-        seconds[kernel] = best
+        seconds[kernel] = best_seconds(
+            lambda e=execution: model.encoder(maps, e), device, repeats, clock
+        )
     return seconds
 
 

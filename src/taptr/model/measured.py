@@ -19,6 +19,7 @@ import hashlib
 import json
 import os
 import platform
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -26,6 +27,11 @@ from typing import Any
 import torch
 
 from taptr.io.atomic import atomic_path
+
+TOLERANCE = 0.03
+"""A measured alternative must be this much faster than the setting it would replace (the
+execution's own, or a smaller frames-per-call that holds less memory): timings on a busy
+machine move by a few percent."""
 
 
 def cpu_name(cpuinfo: str | os.PathLike[str] = "/proc/cpuinfo") -> str:
@@ -42,6 +48,36 @@ def cpu_name(cpuinfo: str | os.PathLike[str] = "/proc/cpuinfo") -> str:
     except OSError:
         pass
     return platform.processor() or platform.machine()
+
+
+def synchronize(device: torch.device) -> None:
+    """Waits for the work queued on an accelerator (nothing to wait for on a CPU)."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    elif device.type == "mps":
+        torch.mps.synchronize()
+
+
+def best_seconds(
+    run: Callable[[], object],
+    device: torch.device,
+    repeats: int = 3,
+    clock: Callable[[], float] = time.perf_counter,
+) -> float:
+    """Seconds of the fastest of ``repeats`` calls of ``run``, after one untimed call.
+
+    The untimed call pays for what a first call does once (kernel selection, allocation,
+    weight copies); the device is synchronised around each timed call.
+    """
+    run()
+    best = float("inf")
+    for _ in range(repeats):
+        synchronize(device)
+        start = clock()
+        run()
+        synchronize(device)
+        best = min(best, clock() - start)
+    return best
 
 
 def measured_path() -> Path:

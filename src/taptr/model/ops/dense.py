@@ -7,8 +7,11 @@ the same products (the 256 → 2048 and 2048 → 256 FFN products, the 256 × 25
 docs/BENCHMARKS.md, ``benchmarks/gemm_floor.py``), the factor of two between AVX2 and
 AVX-512 kernels (oneDNN reports AVX-512 there; MKL's choice is not reported).
 ``MKL_ENABLE_INSTRUCTIONS=AVX512`` did not change MKL's rate. On Intel CPUs both libraries
-are expected to run AVX-512 at about the same rate (not measured here). The same sums in
-another order: results agree with ``F.linear`` up to float rounding.
+are expected to run AVX-512 at about the same rate (not measured here). On 2026-12-05, with
+PyTorch 2.14.1 on an AMD EPYC, the two were within 8% on the encoder's FFN
+(``benchmarks/host_choices.py``): the gap depends on the build and the host, so the
+predictor times both once per host and keeps the faster (`taptr.model.cpu_choice`). The
+same sums in another order: results agree with ``F.linear`` up to float rounding.
 
 oneDNN's inner product is reached through ``torch.ops.mkldnn._linear_pointwise``, the op
 ``torch.compile``'s CPU backend emits for linear layers. It has no backward, so it is used
