@@ -127,3 +127,23 @@ def test_the_decoders_tables_are_bfloat16_and_reuse_their_buffers():
         torch.testing.assert_close(values.float(), exact[1], rtol=0.02, atol=0.02)
     # frames 4 and 5 were written over the bfloat16 pairs frames 2 and 3 released
     assert {store._kept[(0, 0, frame)].data_ptr() for frame in (4, 5)} == first_kept
+
+
+def test_borderless_gather_rows_stay_bfloat16_and_sample_close():
+    from taptr.model.ops.context_patches import sample_key_patches
+    from taptr.model.ops.gather import projected_table
+
+    generator = torch.Generator().manual_seed(1)
+    shapes = [(6, 8), (3, 4)]
+    memory = torch.randn(1, 60, 16, generator=generator)
+    projection = torch.nn.Linear(16, 16)
+    locations = torch.rand(1, 5, 2, 2, 3, 2, generator=generator)  # (B, Q, M, L, P, 2)
+    with torch.no_grad():
+        exact = projected_table(memory, projection, shapes, 2, border=False, onednn=True)
+        with dense.bfloat16_products():
+            rows = projected_table(memory, projection, shapes, 2, border=False, onednn=True)
+        assert exact.dtype == torch.float32 and rows.dtype == torch.bfloat16  # TAPTRv3's keys
+        torch.testing.assert_close(rows.float(), exact, rtol=0.02, atol=0.02)
+        sampled = sample_key_patches("gather", rows, shapes, locations, 3)
+        reference = sample_key_patches("gather", exact, shapes, locations, 3)
+    torch.testing.assert_close(sampled.float(), reference, rtol=0.03, atol=0.03)

@@ -25,8 +25,10 @@ Inside `bfloat16_products`, on CPUs that multiply bfloat16 natively (AVX512-BF16
 copy of each weight, made once) and accumulate in float32; their results come back as
 float32, except where the caller reads them in bfloat16 anyway or converts them itself
 (``keep_type``: between the layers of an MLP, into row blocks). The decoder's key and value
-tables are kept in bfloat16 (`bfloat16_table`): half their memory, half the bytes their
-row gathers read; the sampled keys and values come back to float32 before the scores.
+tables are kept in bfloat16 (`bfloat16_table`), and so are the borderless rows a decoder
+layer projects for one frame (TAPTRv3's keys, `taptr.model.ops.gather.projected_table`):
+half their memory, half the bytes their row gathers read; the samples come back to
+float32 before the scores.
 Everything else that is not a product (norms, softmax, the sampling weights' sums,
 sigmoids, the position update's sums) stays in float32. The backbone's convolutions run
 in bfloat16 too where the model's trunk is stored so

@@ -24,7 +24,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from taptr.model.ops.dense import apply_linear, linear
+from taptr.model.ops.dense import apply_linear, bfloat16_mode, linear
 
 CHUNK_ELEMENTS = 1 << 22
 """Largest intermediate of sampled keys, in elements (16 MB in float32: below glibc's
@@ -90,7 +90,8 @@ def projected_table(
         if differentiable:
             return projection(memory).reshape(-1, channels // heads)
         if onednn:
-            rows = apply_linear(projection, memory, onednn=True)
+            # inside bfloat16 products the rows stay bfloat16: half the bytes to gather
+            rows = apply_linear(projection, memory, onednn=True, keep_type=bfloat16_mode())
             return rows.reshape(-1, channels // heads)
         flat = memory.reshape(-1, channels)  # (B·S, C)
         rows = torch.addmm(projection.bias, flat, projection.weight.t())
