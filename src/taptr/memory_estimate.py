@@ -125,6 +125,11 @@ def encoder_tokens(height: int, width: int) -> int:
     return sum(math.ceil(height / s) * math.ceil(width / s) for s in STRIDES)
 
 
+def trunk_bytes(kind: str, height: int, width: int) -> int:
+    """One frame's trunk activations at an h × w input (``backbone`` above, F = 1)."""
+    return 4 * height * width * BACKBONE_FLOATS.get(kind, 160)
+
+
 def estimate_tracking(
     config: ModelConfig,
     *,
@@ -163,11 +168,7 @@ def estimate_tracking(
     held = num_frames if whole_video else min(num_frames, 2 * window + backward * SEGMENT_FRAMES)
     parts = {
         "features": int(4 * tokens * channels * window * (2 + 2 * layers) * FEATURE_SHARE),
-        "backbone": 4
-        * height
-        * width
-        * BACKBONE_FLOATS.get(config.backbone.kind, 160)
-        * frames_per_call,
+        "backbone": trunk_bytes(config.backbone.kind, height, width) * frames_per_call,
         "read ahead": 4 * tokens * channels * (frames_per_call - 1),
         "points": 4
         * num_points

@@ -221,12 +221,14 @@ def run_case(config: BenchConfig, positions_out: str | None = None) -> BenchResu
         compile_model(model)
     video, queries = _inputs(config)
     autocast = _precision(config)
-    with _precision(config):
-        if config.device == "cpu" and config.execution == "fast":
-            choose_cpu_execution(model, config.size)  # as the predictor does
-        per_call = choose_frames_per_call(
-            model, torch.device(config.device), config.size, config.frames_per_call
-        )
+    per_call = 1  # the reference execution encodes every frame up front (`_track`)
+    if config.execution != "reference":
+        with _precision(config):  # as the predictor chooses
+            if config.device == "cpu":
+                choose_cpu_execution(model, config.size)
+            per_call = choose_frames_per_call(
+                model, torch.device(config.device), config.size, config.frames_per_call
+            )
     if config.device.startswith("cuda"):
         with torch.no_grad(), _precision(config):
             _track(model, config, video, queries, frames_per_call=per_call)

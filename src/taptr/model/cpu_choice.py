@@ -17,6 +17,7 @@ the only path with bfloat16 kernels.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 
 import torch
 
@@ -29,8 +30,18 @@ from taptr.model.taptr import TAPTR
 CPU = torch.device("cpu")
 
 
-def _faster(own: float, other: float) -> bool:
-    return other < own * (1 - TOLERANCE)
+def _own_setting_holds(key: str, time_both: Callable[[], dict[bool, float]]) -> bool:
+    """Whether the execution's own setting (True) is kept against the other (False).
+
+    Measured the first time ``key`` is asked for, then remembered: the other setting
+    replaces it only when it is `TOLERANCE` faster.
+    """
+
+    def measure() -> bool:
+        seconds = time_both()
+        return not seconds[False] < seconds[True] * (1 - TOLERANCE)
+
+    return bool(remembered(key, measure))
 
 
 @torch.no_grad()
@@ -73,26 +84,14 @@ def choose_cpu_execution(model: TAPTR, input_size: tuple[int, int]) -> Execution
     products = execution.onednn_linear and onednn_available() and not bfloat16_mode()
     if products and model.encoder.layers:
         key = choice_key("oneDNN products", CPU, signature, "encoder FFN")
-
-        def measure_products() -> bool:
-            seconds = time_products(model)
-            return not _faster(seconds[True], seconds[False])
-
-        execution = dataclasses.replace(
-            execution, onednn_linear=bool(remembered(key, measure_products))
-        )
+        onednn = _own_setting_holds(key, lambda: time_products(model))
+        execution = dataclasses.replace(execution, onednn_linear=onednn)
     pixels = input_size[0] * input_size[1]
     if execution.channels_last and pixels >= CHANNELS_LAST_MIN_PIXELS:
         trunk = next(model.backbone.parameters()).dtype
         shape = f"{input_size[0]}x{input_size[1]} trunk {trunk}"
         key = choice_key("channels-last frames", CPU, signature, shape)
-
-        def measure_layout() -> bool:
-            seconds = time_layouts(model, input_size)
-            return not _faster(seconds[True], seconds[False])
-
-        execution = dataclasses.replace(
-            execution, channels_last=bool(remembered(key, measure_layout))
-        )
+        layout = _own_setting_holds(key, lambda: time_layouts(model, input_size))
+        execution = dataclasses.replace(execution, channels_last=layout)
     model.set_execution(execution)
     return execution

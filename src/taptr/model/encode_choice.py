@@ -20,7 +20,7 @@ from collections.abc import Callable
 
 import torch
 
-from taptr.memory_estimate import BACKBONE_FLOATS
+from taptr.memory_estimate import trunk_bytes
 from taptr.model.measured import TOLERANCE, best_seconds, choice_key, remembered
 from taptr.model.ops.dense import product_type
 from taptr.model.taptr import TAPTR
@@ -49,7 +49,7 @@ def candidates(
     Args:
         device: where the model runs.
         input_size: (height, width) the model sees.
-        frame_bytes: one frame's trunk activations (`taptr.memory_estimate`).
+        frame_bytes: one frame's trunk activations (`taptr.memory_estimate.trunk_bytes`).
         device_memory: the accelerator's memory, None where it is not limited apart.
     """
     budget = PIXELS_PER_CALL["cpu" if device.type == "cpu" else "other"]
@@ -131,7 +131,7 @@ def choose_frames_per_call(
             raise ValueError(f"frames per call must be 'auto' or at least 1, got {choice!r}")
         return choice
     kind = model.config.backbone.kind if model.config else "resnet50"
-    frame_bytes = 4 * input_size[0] * input_size[1] * BACKBONE_FLOATS.get(kind, 160)
+    frame_bytes = trunk_bytes(kind, *input_size)
     sizes = candidates(device, input_size, frame_bytes, _device_memory(device))
     if len(sizes) == 1:
         return 1

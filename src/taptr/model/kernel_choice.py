@@ -25,6 +25,11 @@ CHOICES = ("auto", "measure", *KERNELS)
 """What `choose_kernel` accepts: ``auto``, ``measure`` or a kernel's name."""
 
 
+def _input_size(model: TAPTR, input_size: tuple[int, int] | None) -> tuple[int, int]:
+    """``input_size``, else the model config's (256 × 256 for a model without one)."""
+    return input_size or (model.config.input_size if model.config else (256, 256))
+
+
 @torch.no_grad()
 def time_kernels(
     model: TAPTR,
@@ -50,7 +55,7 @@ def time_kernels(
     Returns:
         ``{kernel: seconds}`` for every kernel of `taptr.model.ops.KERNELS`.
     """
-    height, width = input_size or (model.config.input_size if model.config else (256, 256))
+    height, width = _input_size(model, input_size)
     dtype = next(model.input_projections.parameters()).dtype  # the trunk may be bfloat16
     frame = torch.randn(1, 3, height, width, device=device, dtype=dtype)
     maps = model.feature_maps(frame)
@@ -95,7 +100,7 @@ def choose_kernel(
     elif choice == "measure":
         kernel = _fastest_kernel(model, device, input_size)
     elif choice == "auto":
-        size = input_size or (model.config.input_size if model.config else (256, 256))
+        size = _input_size(model, input_size)
         dtype = next(model.input_projections.parameters()).dtype
         shape = f"{size[0]}x{size[1]} {dtype} {model.execution.name}"
         key = choice_key("deformable-attention kernel", device, repr(model.config), shape)

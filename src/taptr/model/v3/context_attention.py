@@ -123,10 +123,9 @@ class ContextAwareDeformableAttention(KeyAwareDeformableAttention):
             sampled = sample_key_patches(
                 execution.kernel, keys, spatial_shapes, locations[:, part], self.patch
             )
+            sampled = sampled.unflatten(3, (levels * points, k2))  # (B, q, M, L·P, K², D)
             # bfloat16 key rows (`dense.bfloat16_products`) give bfloat16 samples
-            sampled = sampled.unflatten(3, (levels * points, k2)).to(
-                own.dtype
-            )  # (B, q, M, L·P, K², D)
+            sampled = sampled.to(own.dtype)
             products = torch.einsum("bqmjxd,bqmyd->bqmjxy", sampled, own[:, part])
             logits.append(self.similarity(products.flatten(-2), execution).squeeze(-1))
         return torch.cat(logits, dim=1)  # (B, Q, M, L·P)
