@@ -1,0 +1,275 @@
+"""TAPTRv3's weights from Google Drive, end to end, against a fake Drive on 127.0.0.1.
+
+The fake answers as Drive does for a large file: ``/uc?export=download&id=ID`` gives a
+one-line HTML confirmation page (a ``download-form`` whose action and hidden fields make
+the download address), and only that address, with the page's hidden ``confirm`` and
+``uuid`` values, gives the file. gdown reads the page; ``TAPTR_DRIVE_URL`` (the testing
+hook of `taptr.drive`) points taptr at the fake. Nothing leaves the machine.
+"""
+
+from __future__ import annotations
+
+import logging
+import socket
+import sys
+import threading
+import time
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
+from urllib.parse import parse_qs, urlsplit
+
+import pytest
+
+import taptr
+from taptr import drive, hub
+from taptr.checkpoint import CheckpointError
+from taptr.model.v3 import TAPTRv3
+
+pytest.importorskip("gdown")
+
+R18_ID = "1frPX9R_nKDG8FmL-vH6l_2HsJfhvEjtg"
+R50_ID = "19iql2VTqGIeoyg_wt3JjpohszN5UE6s1"
+UUID = "5e1f-fake-uuid"
+
+
+class FakeDrive:
+    """Serves ``content`` behind Drive's confirmation page and records every request.
+
+    Args:
+        content: the file's bytes.
+        cut_at: send only this many bytes after announcing them all, then hang up.
+        kind: the file's Content-Type (``text/html`` makes it an error page).
+        quota: answer with Drive's download-quota page instead of the confirmation.
+        direct: serve the file at once, as Drive does for files it can scan (small ones).
+    """
+
+    def __init__(
+        self,
+        content: bytes,
+        cut_at: int | None = None,
+        kind: str = "",
+        quota: bool = False,
+        direct: bool = False,
+    ) -> None:
+        self.content, self.cut_at, self.quota, self.direct = content, cut_at, quota, direct
+        self.kind = kind or "application/octet-stream"
+        self.requests: list[str] = []
+        fake = self
+
+        class Handler(BaseHTTPRequestHandler):
+            def do_GET(self):
+                url = urlsplit(self.path)
+                query = {k: v[0] for k, v in parse_qs(url.query).items()}
+                fake.requests.append(url.path)
+                if url.path == "/uc" and fake.direct:
+                    self._file()
+                elif url.path == "/uc" and query.get("id") in (R18_ID, R50_ID):
+                    self._send(200, "text/html; charset=utf-8", fake.page(query["id"]).encode())
+                elif url.path == "/download" and query.get("confirm") == "t":
+                    if query.get("uuid") != UUID:
+                        self._send(403, "text/plain", b"no uuid")
+                    else:
+                        self._file()
+                else:
+                    self._send(404, "text/plain", b"not found")
+
+            def _send(self, status: int, kind: str, body: bytes) -> None:
+                self.send_response(status)
+                self.send_header("Content-Type", kind)
+                self.send_header("Content-Length", str(len(body)))
+                self.end_headers()
+                self.wfile.write(body)
+
+            def _file(self) -> None:
+                self.send_response(200)
+                self.send_header("Content-Type", fake.kind)
+                self.send_header("Content-Disposition", 'attachment; filename="weights.pth"')
+                self.send_header("Content-Length", str(len(fake.content)))
+                self.end_headers()
+                self.wfile.write(fake.content[: fake.cut_at])
+                self.wfile.flush()
+                self.close_connection = True
+
+            def log_message(self, *args):
+                pass
+
+        self.server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.url = f"http://127.0.0.1:{self.server.server_address[1]}"
+        threading.Thread(target=self.server.serve_forever, daemon=True).start()
+
+    def page(self, file_id: str) -> str:
+        """Drive's virus-scan warning for a large file, on one line as Drive sends it."""
+        if self.quota:
+            return (
+                "<!DOCTYPE html><html><head><title>Google Drive - Quota exceeded</title></head>"
+                '<body><p class="uc-error-caption">Sorry, you can&#39;t view or download this '
+                'file at this time.</p><p class="uc-error-subcaption">Too many users have '
+                "viewed or downloaded this file recently.</p></body></html>"
+            )
+        fields = {"id": file_id, "export": "download", "confirm": "t", "uuid": UUID}
+        hidden = "".join(f'<input type="hidden" name="{k}" value="{v}">' for k, v in fields.items())
+        return (
+            "<!DOCTYPE html><html><head><title>Google Drive - Virus scan warning</title></head>"
+            "<body><p>Google Drive can't scan this file for viruses.</p>"
+            f'<form id="download-form" action="{self.url}/download" method="get">'
+            f'<input type="submit" value="Download anyway">{hidden}</form></body></html>'
+        )
+
+    def close(self) -> None:
+        self.server.shutdown()
+        self.server.server_close()
+
+
+@pytest.fixture
+def weights(monkeypatch, tmp_path) -> Path:
+    """Downloads allowed (the suite runs offline) into an empty weights folder of our own."""
+    monkeypatch.delenv("HF_HUB_OFFLINE", raising=False)
+    monkeypatch.delenv("TAPTR_OFFLINE", raising=False)
+    folder = tmp_path / "weights"
+    monkeypatch.setenv("TAPTR_WEIGHTS_DIR", str(folder))
+    return folder
+
+
+@pytest.fixture
+def serve(monkeypatch):
+    servers: list[FakeDrive] = []
+
+    def start(content: bytes, **options) -> FakeDrive:
+        fake = FakeDrive(content, **options)
+        servers.append(fake)
+        monkeypatch.setenv("TAPTR_DRIVE_URL", fake.url)
+        return fake
+
+    yield start
+    for fake in servers:
+        fake.close()
+
+
+def left_in(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.iterdir()) if folder.exists() else []
+
+
+def test_taptrv3_downloads_once_through_the_confirmation_page(
+    weights, serve, official_v3_checkpoint, caplog
+):
+    fake = serve(official_v3_checkpoint.read_bytes())
+    weights.mkdir()  # what a download killed outright (SIGKILL) left: removed by the next
+    (weights / ".TAPTRv3_resnet18_384x512.999999999-dead.tmp.pth").write_bytes(b"half")
+    with caplog.at_level(logging.WARNING):
+        predictor = taptr.Predictor.from_pretrained("taptrv3-official", device="cpu")
+    assert isinstance(predictor.model, TAPTRv3) and predictor.input_size == (384, 512)
+    assert fake.requests == ["/uc", "/download"]  # the page first, then its form's address
+    assert "IDEA License 1.0, non-commercial" in caplog.text  # said before the download
+    assert left_in(weights) == ["TAPTRv3_resnet18_384x512.pth"]  # no temporaries left
+    assert (weights / "TAPTRv3_resnet18_384x512.pth").read_bytes() == fake.content
+    # once: the folder answers from now on, without a request
+    assert hub.manual_path("taptrv3-official") == weights / "TAPTRv3_resnet18_384x512.pth"
+    assert len(fake.requests) == 2
+
+
+def test_a_file_served_without_confirmation_is_taken_as_it_comes(
+    weights, serve, official_v3_checkpoint
+):
+    fake = serve(official_v3_checkpoint.read_bytes(), direct=True)
+    assert hub.download("taptrv3-official").read_bytes() == fake.content
+    assert fake.requests == ["/uc", "/uc"]  # asked once, then fetched by gdown
+
+
+def test_an_interrupted_download_leaves_nothing_that_looks_complete(
+    weights, serve, official_v3_checkpoint
+):
+    content = official_v3_checkpoint.read_bytes()
+    serve(content, cut_at=len(content) // 2)
+    with pytest.raises(FileNotFoundError) as raised:
+        taptr.from_pretrained("taptrv3-official")
+    message = str(raised.value)
+    assert "the download broke off" in message and R18_ID in message
+    assert "\n" not in message
+    assert left_in(weights) == []  # neither the file nor gdown's partial one
+
+
+def test_a_file_cut_short_is_refused_by_its_size(weights, serve, official_v3_checkpoint):
+    serve(official_v3_checkpoint.read_bytes()[: 1 << 20])  # announced and sent: 1 MiB
+    with pytest.raises(CheckpointError, match=r"1,048,576 bytes, but its weights take at least"):
+        taptr.from_pretrained("taptrv3-official")
+    assert left_in(weights) == []
+
+
+def test_a_drive_page_instead_of_the_file_is_refused(weights, serve):
+    page = b"<!DOCTYPE html><html><body>Too many users have viewed or downloaded this file"
+    serve(page + b" " * 100, kind="text/html")
+    with pytest.raises(CheckpointError, match=r"is a web page \(HTML\), not weights"):
+        taptr.from_pretrained("taptrv3-official")
+    assert left_in(weights) == []
+
+
+def test_drives_download_limit_is_said_with_the_link(weights, serve):
+    fake = serve(b"unused", quota=True)
+    with pytest.raises(FileNotFoundError) as raised:
+        taptr.from_pretrained("taptrv3-official")
+    message = str(raised.value)
+    assert "Drive did not give the file (" in message and "Too many users" in message
+    assert R18_ID in message and "\n" not in message
+    assert fake.requests == ["/uc"] and left_in(weights) == []
+
+
+def test_another_models_weights_are_refused_with_what_they_are(
+    weights, serve, official_checkpoint, official_v3_checkpoint
+):
+    serve(official_checkpoint.read_bytes())  # TAPTRv2 under TAPTRv3's name
+    with pytest.raises(CheckpointError) as raised:
+        taptr.from_pretrained("taptrv3-official")
+    message = str(raised.value)
+    assert "holds TAPTRv2 (ResNet-50 backbone, C = 256)" in message
+    assert "taptrv3-official is TAPTRv3 (ResNet-18 backbone, C = 256)" in message
+    serve(official_v3_checkpoint.read_bytes())  # ResNet-18 under the ResNet-50 name
+    with pytest.raises(CheckpointError, match=r"holds TAPTRv3 \(ResNet-18.*is TAPTRv3 \(ResNet-50"):
+        taptr.from_pretrained("taptrv3-r50-official")
+    assert left_in(weights) == []
+
+
+def test_without_gdown_or_offline_the_message_of_today_stays(weights, serve, monkeypatch, caplog):
+    fake = serve(b"unused")
+    monkeypatch.setitem(sys.modules, "gdown", None)
+    with pytest.raises(FileNotFoundError) as raised, caplog.at_level(logging.WARNING):
+        taptr.from_pretrained("taptrv3-official")
+    assert "downloading" not in caplog.text  # no licence notice for a download never tried
+    message = str(raised.value)
+    assert "gdown is not installed (pip install 'taptr[drive]')" in message
+    assert f"https://drive.google.com/file/d/{R18_ID}" in message and "in a browser" in message
+    monkeypatch.delitem(sys.modules, "gdown")
+    monkeypatch.setenv("TAPTR_OFFLINE", "1")
+    with pytest.raises(FileNotFoundError, match="downloads are disabled"):
+        taptr.from_pretrained("taptrv3-official")
+    assert fake.requests == []
+
+
+def test_unreachable_drive_is_said_at_once(weights, monkeypatch):
+    with socket.socket() as probe:  # a port nobody listens on
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    monkeypatch.setenv("TAPTR_DRIVE_URL", f"http://127.0.0.1:{port}")
+    started = time.perf_counter()
+    with pytest.raises(FileNotFoundError, match="Drive could not be reached"):
+        taptr.from_pretrained("taptrv3-official")
+    assert time.perf_counter() - started < drive.PROBE_TIMEOUT
+
+
+def test_taptr_download_fetches_ahead_of_time(weights, serve, official_v3_checkpoint, capsys):
+    from taptr.cli.main import main
+
+    fake = serve(official_v3_checkpoint.read_bytes())
+    assert main(["download", "taptrv3-official"]) == 0
+    path = weights / "TAPTRv3_resnet18_384x512.pth"
+    assert path.read_bytes() == fake.content
+    assert str(path) in capsys.readouterr().out
+    assert main(["download", "taptrv3-official"]) == 0  # already there: no second transfer
+    assert fake.requests.count("/download") == 1
+
+
+def test_drive_links_give_their_file_ids():
+    assert drive.file_id(hub.MANUAL["taptrv3-official"].url) == R18_ID
+    assert drive.file_id(hub.MANUAL["taptrv3-r50-official"].url) == R50_ID
+    assert drive.file_id("https://drive.google.com/uc?export=download&id=abc-_1") == "abc-_1"
+    with pytest.raises(ValueError, match="not a Google Drive file link"):
+        drive.file_id("https://example.com/weights.pth")
