@@ -40,9 +40,9 @@ import torch
 
 from taptr.model.build import build_model
 from taptr.model.execution import Execution, get_execution
-from taptr.model.frames import EncodedFrames
 from taptr.model.sliding_window import QuerySet, run_windows
 from taptr.model.taptr import TAPTR, normalize_frames
+from taptr.runtime.frames import EncodedFrames
 
 PARTS_OFF = {
     "encoder_block": None,

@@ -1,7 +1,7 @@
 """What this machine measures for the speed-only choices the predictor makes, and why.
 
-Times every candidate of each measured choice of `taptr.model.cpu_choice` (oneDNN or the
-BLAS for the linear layers, channels-last frames or not) and `taptr.model.encode_choice`
+Times every candidate of each measured choice of `taptr.runtime.cpu_choice` (oneDNN or the
+BLAS for the linear layers, channels-last frames or not) and `taptr.runtime.encode_choice`
 (frames per encoder call) on the paper preset's random weights, at each input size asked,
 and prints the timings next to what the predictor would choose. Nothing is remembered:
 this measures afresh.
@@ -19,11 +19,11 @@ import torch
 
 from taptr.apps.benchmark import machine
 from taptr.model.build import build_model
-from taptr.model.cpu_choice import time_layouts, time_products
-from taptr.model.encode_choice import candidates, fastest, time_frames_per_call
 from taptr.model.execution import CHANNELS_LAST_MIN_PIXELS
-from taptr.model.measured import TOLERANCE
 from taptr.model.ops.dense import bfloat16_products
+from taptr.runtime.cpu_choice import time_layouts, time_products
+from taptr.runtime.encode_choice import candidates, fastest, time_frames_per_call
+from taptr.runtime.measured import TOLERANCE
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -54,7 +54,14 @@ def open_stream(args: argparse.Namespace, scratch: Path) -> cv2.VideoCapture:
     import cv2
 
     if args.video is None:
-        capture = cv2.VideoCapture(args.camera)
+        # OpenCV logs its own "[ WARN:0@...] can't open camera" lines when there is none;
+        # the message below says it once, in words
+        level = cv2.utils.logging.getLogLevel()
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+        try:
+            capture = cv2.VideoCapture(args.camera)
+        finally:
+            cv2.utils.logging.setLogLevel(level)
         if capture.isOpened():
             print(f"reading camera {args.camera}")
             return capture

@@ -73,6 +73,12 @@ SECTIONS = {
     ],
     "Training": ["taptr.train.config", "taptr.train.loop"],
     "Export": ["taptr.export"],
+    "Corpora": [
+        "taptr.corpus.pipeline",
+        "taptr.corpus.inputs",
+        "taptr.corpus.manifest",
+        "taptr.corpus.results",
+    ],
 }
 """Heading → modules, in the order they appear in the page."""
 

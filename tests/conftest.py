@@ -36,7 +36,7 @@ os.environ["HF_HUB_OFFLINE"] = "1"
 os.environ["HF_HUB_CACHE"] = os.path.join(
     os.environ.get("TMPDIR", "/tmp"), f"taptr-tests-hub-cache-{os.getpid()}"
 )
-# measured speed choices (`taptr.model.measured`) go to a file of this run, not the user's
+# measured speed choices (`taptr.runtime.measured`) go to a file of this run, not the user's
 os.environ["TAPTR_MEASURED"] = os.path.join(
     os.environ.get("TMPDIR", "/tmp"), f"taptr-tests-measured-{os.getpid()}.json"
 )
@@ -58,6 +58,18 @@ def tiny_model():
 
     torch.manual_seed(0)
     return build_model("tiny").eval()
+
+
+@pytest.fixture(scope="session")
+def tiny_checkpoint(tmp_path_factory) -> Path:
+    """The tiny model (seed 0, 6 context points) saved as a checkpoint file."""
+    from taptr import build_model
+    from taptr.checkpoint import save_checkpoint
+    from taptr.config import get_config
+
+    torch.manual_seed(0)
+    built = build_model(get_config("tiny").replace(context_points=6))
+    return save_checkpoint(built, tmp_path_factory.mktemp("tiny_model") / "tiny.pth")
 
 
 @pytest.fixture(scope="session")

@@ -13,13 +13,15 @@ its `memory_bound` oracle (peak RSS growth per input) applies to every category.
 
 from __future__ import annotations
 
+import contextlib
 import io
+import os
 import pickle
 import struct
 import tempfile
 import traceback
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from functools import cache
 from pathlib import Path
 from typing import Any
@@ -29,7 +31,7 @@ import torch
 from hypothesis import strategies as st
 
 from taptr.io.safe_pickle import ALLOWED
-from tests import bombs, fuzz_hostile
+from tests import bombs, fuzz_hostile, fuzz_options
 from tests.fuzz_hostile import SilentError, memory_bound
 
 CLEAN = (ValueError, FileNotFoundError)
@@ -346,6 +348,79 @@ checkpoint_bytes = st.builds(
 """The tiny model's checkpoint file (zip or legacy) with a few bytes flipped, cut or inserted."""
 
 
+# -- weights under a wrong name ------------------------------------------------------------
+
+_NAMED_PRESETS = ("tiny", "tiny-v3", "small")
+"""Small architectures the fuzzed names promise and the fuzzed files hold."""
+
+
+def read_named_weights(case: tuple[str, str, bool, float | None]) -> None:
+    """Saves a ``found`` model under the file name of weights that promise ``expected``.
+
+    The file is loaded by name (`taptr.hub.load_model`, offline, from the weights folder);
+    a load that returns a model of another architecture than the name's is silent wrong
+    output, a refusal of the name's own architecture is a traceback.
+    """
+    from taptr import hub
+    from taptr.checkpoint import CheckpointError
+    from taptr.checkpoint_identity import same_architecture
+    from taptr.config import get_config
+    from taptr.drive_weights import ManualWeights
+
+    found, expected, half, threshold = case
+    entry = ManualWeights("https://drive.google.com/file/d/fuzz", "fuzz.pth", expected, "x", "")
+    with tempfile.TemporaryDirectory() as folder, _named_in(folder, entry):
+        Path(folder, "fuzz.pth").write_bytes(_named_file(found, half, threshold))
+        try:
+            model = hub.load_model("fuzz-official").model
+        except CheckpointError:
+            if same_architecture(get_config(found), get_config(expected)):
+                raise AssertionError(f"{found} refused under a name of {expected}") from None
+            raise
+    if not same_architecture(model.config, get_config(expected)):
+        raise SilentError(f"{found} weights loaded under a name that promises {expected}")
+
+
+@contextlib.contextmanager
+def _named_in(folder: str, entry: Any) -> Iterator[None]:
+    """``fuzz-official`` registered as Drive weights read (offline) from ``folder``."""
+    from taptr import hub
+
+    saved = {key: os.environ.get(key) for key in ("TAPTR_WEIGHTS_DIR", "TAPTR_OFFLINE")}
+    os.environ.update(TAPTR_WEIGHTS_DIR=folder, TAPTR_OFFLINE="1")
+    hub.MANUAL["fuzz-official"] = entry
+    try:
+        yield
+    finally:
+        del hub.MANUAL["fuzz-official"]
+        for key, value in saved.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
+
+
+@cache
+def _named_file(preset: str, half: bool, threshold: float | None) -> bytes:
+    from taptr import build_model
+    from taptr.checkpoint import save_checkpoint
+
+    torch.manual_seed(0)
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / "model.pth"
+        save_checkpoint(build_model(preset), path, half=half, visibility_threshold=threshold)
+        return path.read_bytes()
+
+
+named_weights = st.tuples(
+    st.sampled_from(_NAMED_PRESETS),
+    st.sampled_from(_NAMED_PRESETS),
+    st.booleans(),
+    st.sampled_from([None, 0.3]),
+)
+"""(architecture of the file, architecture its name promises, float16, a stored threshold)."""
+
+
 # -- videos and frame folders --------------------------------------------------------------
 
 
@@ -423,6 +498,8 @@ CATEGORIES: dict[str, tuple[Any, Callable[[Any], Any]]] = {
     "checkpoint, key/shape/dtype/config mutations": (checkpoint_mutations(), read_checkpoint),
     "checkpoint, mutated bytes": (checkpoint_bytes, read_checkpoint),
     "video file / frame folder": (video_inputs(), read_video_files),
+    "named weights, another architecture": (named_weights, read_named_weights),
     **fuzz_hostile.CATEGORIES,
+    **fuzz_options.CATEGORIES,
 }
 """Every fuzzed input category: (strategy, target)."""

@@ -187,6 +187,33 @@ def test_parser_errors_are_one_line_with_a_hint(clip, capsys):
     assert "written --points-file=VALUE" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["track", "clip.mp4", "--gird", "8"], "unknown option --gird; did you mean --grid?"),
+        (["track", "c.mp4", "--grid", "8", "--chekpoint=x"], "did you mean --checkpoint?"),
+        (["eval", "--dataset", "davis", "--gird", "3"], "unknown option --gird (see"),
+    ],
+)
+def test_a_misspelled_option_is_unknown_with_the_closest_name(argv, message, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    assert exit_info.value.code == 2
+    line = _one_line_error(capsys, argv[0])
+    assert message in line and "required" not in line
+
+
+def test_abbreviations_and_values_after_a_double_dash_are_still_accepted():
+    from taptr.cli.main import unknown_option
+
+    track = build_parser()._subparsers._group_actions[0].choices["track"]
+    assert unknown_option(track, ["clip.mp4", "--gr", "8", "--check", "x"]) is None
+    assert unknown_option(track, ["--grid", "8", "--", "--not-an-option"]) is None
+    assert unknown_option(track, ["--grid=8", "--outt", "o"]) == (
+        "unknown option --outt; did you mean --out?"
+    )
+
+
 def test_train_resume_on_a_list_is_one_line(tmp_path, capsys):
     torch.save([1, 2, 3], tmp_path / "list.pt")
     assert main(["train", "--resume", str(tmp_path / "list.pt"), "--out", str(tmp_path)]) == 2

@@ -2,16 +2,15 @@
 
 from __future__ import annotations
 
-import json
-
 import pytest
 import torch
 
 import taptr
-from taptr.model import cpu_choice
-from taptr.model.cpu_choice import choose_cpu_execution, time_layouts, time_products
 from taptr.model.execution import CHANNELS_LAST_MIN_PIXELS
 from taptr.model.ops import dense
+from taptr.runtime import cpu_choice
+from taptr.runtime.cpu_choice import choose_cpu_execution, time_layouts, time_products
+from taptr.runtime.measured_file import read_choices
 
 pytestmark = pytest.mark.skipif(
     not dense.onednn_available(), reason="oneDNN inner products are x86-only"
@@ -55,7 +54,7 @@ def test_the_faster_setting_wins_and_is_remembered(model, measured_file, monkeyp
     execution = choose_cpu_execution(model, LARGE)
     assert not execution.onednn_linear and not execution.channels_last  # BLAS, plain frames
     assert model.execution is execution and execution.kernel == "gather"  # the rest is kept
-    assert timed == ["products", "layout"] and len(json.loads(measured_file.read_text())) == 2
+    assert timed == ["products", "layout"] and len(read_choices(measured_file).choices) == 2
     again = taptr.build_model("tiny").eval()
     assert choose_cpu_execution(again, LARGE) == execution
     assert timed == ["products", "layout"]  # read, not measured

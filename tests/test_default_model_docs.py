@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from taptr.hub import BUNDLED, DEFAULT_MODEL, FALLBACK_MODEL, WEIGHTS
+from taptr.hub import BUNDLED, DEFAULT_MODEL, FALLBACK_MODEL, MANUAL, WEIGHTS
 
 REPO = Path(__file__).resolve().parents[1]
 PAGES = sorted(
@@ -43,7 +43,7 @@ PHRASES = {
     r"\bbundled\b": FALLBACK_MODEL,
     r"\bpaper's\s+(?:released\s+)?(?:TAPTRv2\s+)?weights": "",
 }
-NAMES = sorted([*WEIGHTS, *BUNDLED], key=len, reverse=True)
+NAMES = sorted([*WEIGHTS, *MANUAL, *BUNDLED], key=len, reverse=True)
 MENTION = re.compile(
     "|".join([*(rf"(?<![\w-]){re.escape(name)}(?![\w-])" for name in NAMES), *PHRASES])
 )
@@ -128,3 +128,40 @@ def test_reader_pages_state_the_default_and_its_licence(name):
     assert any("non-commercial" in s for s in stating), (
         f"{name} names the default {DEFAULT_MODEL} without its licence (non-commercial)"
     )
+
+
+@pytest.mark.parametrize("name", STATING_PAGES)
+def test_reader_pages_state_the_fallback_with_the_default(name):
+    text = " ".join((REPO / name).read_text().split())
+    sentences = re.split(r"(?<=[.!?])\s+(?=[A-Z`*(])", text)
+    stating = [
+        i
+        for i, s in enumerate(sentences)
+        if re.search(rf"default\W.*{re.escape(DEFAULT_MODEL)}", s)
+    ]
+    # the fallback is said in the same sentence or the next one
+    assert any(FALLBACK_MODEL in " ".join(sentences[i : i + 2]) for i in stating), (
+        f"{name} states the default {DEFAULT_MODEL} without what runs when it cannot be had "
+        f"({FALLBACK_MODEL})"
+    )
+
+
+def test_help_and_the_fallback_line_name_the_chain():
+    from taptr.cli.main import build_parser
+    from taptr.cli.model_options import CHECKPOINT_HELP
+    from taptr.hub import fallback_notice
+
+    for model in (DEFAULT_MODEL, FALLBACK_MODEL):
+        assert model in CHECKPOINT_HELP
+    commands = build_parser()._subparsers._group_actions[0].choices
+    defaults = {
+        command: action.help
+        for command, parser in commands.items()
+        for action in parser._actions
+        if "--checkpoint" in action.option_strings and "default" in (action.help or "")
+    }
+    assert {"track", "edit"} <= set(defaults)
+    for command, text in defaults.items():
+        assert DEFAULT_MODEL in text and FALLBACK_MODEL in text, f"taptr {command} --help"
+    line = fallback_notice("offline")
+    assert "\n" not in line and DEFAULT_MODEL in line and FALLBACK_MODEL in line

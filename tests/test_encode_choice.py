@@ -3,22 +3,22 @@
 from __future__ import annotations
 
 import copy
-import json
 
 import pytest
 import torch
 
 import taptr
 from taptr.api.predictor import Predictor
-from taptr.model import encode_choice, measured
-from taptr.model.encode_choice import (
+from taptr.runtime import encode_choice, measured
+from taptr.runtime.encode_choice import (
     candidates,
     choose_frames_per_call,
     fastest,
     time_frames_per_call,
 )
-from taptr.model.frames import EncodedFrames
-from taptr.model.measured import remembered
+from taptr.runtime.frames import EncodedFrames
+from taptr.runtime.measured import remembered
+from taptr.runtime.measured_file import read_choices
 
 CPU = torch.device("cpu")
 QUERIES = torch.tensor([[0, 10.0, 20.0], [3, 40.0, 30.0], [5, 70.0, 50.0]])
@@ -122,7 +122,7 @@ def test_auto_measures_once_per_shape_then_remembers(model, measured_file, monke
         encode_choice, "time_frames_per_call", lambda *a, **k: {1: 3.0, 2: 2.0, 4: 1.0}
     )
     assert choose_frames_per_call(model, CPU, (32, 48)) == 4
-    entries = json.loads(measured_file.read_text())
+    entries = read_choices(measured_file).choices
     (key,) = entries
     assert "frames per encoder call" in key and "32x48" in key and entries[key] == 4
 
@@ -144,14 +144,19 @@ def test_the_precision_is_part_of_the_key(model, measured_file, monkeypatch):
     assert choose_frames_per_call(model, CPU, (32, 48)) == 2
     with torch.autocast("cpu", dtype=torch.bfloat16):
         assert choose_frames_per_call(model, CPU, (32, 48)) == 1
-    assert len(json.loads(measured_file.read_text())) == 2
+    assert len(read_choices(measured_file).choices) == 2
 
 
 def test_a_broken_or_unwritable_file_costs_only_the_measurement(tmp_path):
     broken = tmp_path / "broken.json"
     broken.write_text("{not json")
-    assert remembered("k", lambda: 5, broken) == 5
-    assert json.loads(broken.read_text()) == {"k": 5}
+    with pytest.warns(UserWarning, match="not taptr's file"):
+        assert remembered("k", lambda: 5, broken) == 5
+    assert broken.read_text() == "{not json"  # not taptr's: left alone
+    empty = tmp_path / "empty.json"
+    empty.write_text("")
+    assert remembered("k", lambda: 6, empty) == 6
+    assert read_choices(empty).choices == {"k": 6}
     blocked = tmp_path / "a-file"
     blocked.write_text("")
     assert remembered("k", lambda: 7, blocked / "measured.json") == 7  # parent is a file
@@ -188,7 +193,7 @@ def test_the_predictor_tracks_the_same_at_any_frames_per_call(model, measured_fi
     )
     auto = Predictor(copy.deepcopy(model), device="cpu")
     assert auto.frames_per_call in candidates(CPU, auto.input_size)
-    assert json.loads(measured_file.read_text())  # the choice was remembered
+    assert read_choices(measured_file).choices  # the choice was remembered
     with pytest.raises(ValueError, match="frames per call must be"):
         Predictor(copy.deepcopy(model), device="cpu", frames_per_call=0)
 

@@ -143,3 +143,14 @@ def test_runs_on_generated_media(name, tmp_path, sample, capsys, monkeypatch):
     # torch keeps its compiler cache there on purpose; anything else is a leftover
     left = [p.name for p in scratch.iterdir() if not p.name.startswith("torchinductor_")]
     assert not left, f"{name} left temporary files behind: {left}"
+
+
+def test_online_camera_without_a_camera_says_so_in_its_own_words(tmp_path, capfd):
+    import argparse
+
+    args = argparse.Namespace(camera=7, video=None)  # no machine of the suite has camera 7
+    capture = _load("online_camera").open_stream(args, tmp_path)
+    capture.release()
+    out, err = capfd.readouterr()
+    assert "no camera 7: reading the generated sample clip instead" in out
+    assert "WARN" not in err and "libavdevice" not in err  # OpenCV's own lines are kept quiet

@@ -17,6 +17,7 @@ import pytest
 from hypothesis import given
 
 from tests import fuzz_hostile as hostile
+from tests import fuzz_options as options
 from tests import fuzz_targets as targets
 
 
@@ -62,6 +63,11 @@ def test_fuzz_videos_and_frame_folders(files):
     _run(targets.read_video_files, files)
 
 
+@given(targets.named_weights)
+def test_fuzz_named_weights_of_another_architecture(case):
+    _run(targets.read_named_weights, case)
+
+
 @given(hostile.decoder_inputs())
 def test_fuzz_decoders_by_content(value):
     _run(hostile.read_by_role, value)
@@ -86,6 +92,21 @@ def test_fuzz_special_files(value):
 @given(hostile.resource_requests())
 def test_fuzz_resource_estimates(request):
     _run(hostile.check_estimate, request)
+
+
+@given(options.measured_files())
+def test_fuzz_measured_choices_file(data):
+    _run(options.read_measured, data)
+
+
+@given(options.settings_entries())
+def test_fuzz_result_folder_settings(entry):
+    _run(options.rerun_over_settings, entry)
+
+
+@given(options.bench_options())
+def test_fuzz_bench_options(argv):
+    _run(options.check_bench, argv)
 
 
 def test_every_category_is_fuzzed():

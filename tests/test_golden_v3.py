@@ -15,9 +15,9 @@ import pytest
 import torch
 
 import taptr
-from taptr.model.frames import EncodedFrames
 from taptr.model.sliding_window import QuerySet
 from taptr.model.v3 import per_frame
+from taptr.runtime.frames import EncodedFrames
 from tests.helpers import golden_inputs, load_golden
 
 CASES = {"v3_r18_small": None, "v3_r18_long": None, "v3_r18_fifo": 16}

@@ -7,6 +7,8 @@ a commit, the file under ``snapshots/<commit>/``).
 
 from __future__ import annotations
 
+import os
+import shutil
 import socket
 from pathlib import Path
 
@@ -47,11 +49,14 @@ def place_in_cache(cache: Path, repo_id: str, filename: str) -> Path:
 
 
 @pytest.fixture
-def cached_taptrv2(offline, tiny_model) -> Path:
-    """A small taptr checkpoint standing in for taptrv2.pth in the cache."""
-    return save_checkpoint(
-        tiny_model, place_in_cache(offline, "HYeungLee/TAPTR-Series", "taptrv2.pth")
-    )
+def cached_taptrv2(offline, official_checkpoint) -> Path:
+    """The seed-1 TAPTRv2 weights as taptrv2.pth in the cache (a hard link: tests delete it)."""
+    path = place_in_cache(offline, "HYeungLee/TAPTR-Series", "taptrv2.pth")
+    try:
+        os.link(official_checkpoint, path)
+    except OSError:  # another file system
+        shutil.copyfile(official_checkpoint, path)
+    return path
 
 
 def test_registry_names():
@@ -69,12 +74,25 @@ def test_registry_names():
     assert hub.WEIGHTS["taptrv1-official"].filename == "taptrv1.pth"
 
 
-def test_cached_weights_resolve_offline(offline, cached_taptrv2, tiny_model):
+def test_cached_weights_resolve_offline(offline, cached_taptrv2, official_state_dict):
     assert hub.weights_path("taptrv2-official", cache_dir=offline) == cached_taptrv2
     model = taptr.from_pretrained("taptrv2-official", cache_dir=offline)
-    assert not model.training
-    for key, value in tiny_model.state_dict().items():
-        torch.testing.assert_close(model.state_dict()[key], value, rtol=0, atol=0)
+    assert not model.training and model.config.d_model == 256
+    torch.testing.assert_close(
+        model.state_dict()["backbone.body.conv1.weight"],
+        official_state_dict["module.backbone.0.body.conv1.weight"],
+        rtol=0,
+        atol=0,
+    )
+
+
+def test_another_model_cached_as_taptrv2_is_refused_with_what_it_is(offline, tiny_model):
+    save_checkpoint(tiny_model, place_in_cache(offline, "HYeungLee/TAPTR-Series", "taptrv2.pth"))
+    with pytest.raises(CheckpointError) as raised:
+        taptr.from_pretrained("taptrv2-official", cache_dir=offline)
+    message = str(raised.value)
+    assert "holds TAPTRv2 (small convolutional backbone, C = 32)" in message
+    assert "taptrv2-official is TAPTRv2 (ResNet-50 backbone, C = 256)" in message
 
 
 def test_default_cache_comes_from_the_environment(cached_taptrv2, monkeypatch):
@@ -83,7 +101,7 @@ def test_default_cache_comes_from_the_environment(cached_taptrv2, monkeypatch):
 
     monkeypatch.setattr(constants, "HF_HUB_CACHE", str(cached_taptrv2.parents[3]))
     predictor = taptr.Predictor.from_pretrained("taptrv2-official", device="cpu")
-    assert predictor.model.config.d_model == 32
+    assert predictor.model.config.d_model == 256
 
 
 def test_missing_weights_say_what_to_download_and_where(offline):

@@ -45,14 +45,22 @@ def test_bundled_model_loads_from_the_local_repository(tmp_path, tiny_model, mon
         torch.testing.assert_close(predictor.model.state_dict()[key], value, rtol=0, atol=0)
 
 
-def test_taptrv2_entry_point_reads_the_hub_cache(tmp_path, tiny_model, monkeypatch):
+def test_taptrv2_entry_point_reads_the_hub_cache(
+    tmp_path, official_checkpoint, official_state_dict, monkeypatch
+):
     pytest.importorskip("huggingface_hub")
     from huggingface_hub import constants
 
     from tests.test_hub import place_in_cache
 
     cache = tmp_path / "hub-cache"
-    save_checkpoint(tiny_model, place_in_cache(cache, "HYeungLee/TAPTR-Series", "taptrv2.pth"))
+    place_in_cache(cache, "HYeungLee/TAPTR-Series", "taptrv2.pth").symlink_to(official_checkpoint)
     monkeypatch.setattr(constants, "HF_HUB_CACHE", str(cache))
     predictor = torch.hub.load(str(ROOT), "taptrv2", source="local", device="cpu")
-    assert predictor.model.config.d_model == 32  # the file in the cache, not a fresh model
+    # the file in the cache, not a fresh model
+    torch.testing.assert_close(
+        predictor.model.state_dict()["backbone.body.conv1.weight"],
+        official_state_dict["module.backbone.0.body.conv1.weight"],
+        rtol=0,
+        atol=0,
+    )

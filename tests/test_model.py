@@ -8,8 +8,8 @@ import torch
 import taptr
 from taptr.config import tiny
 from taptr.geometry import clamp_to_unit
-from taptr.model.frames import EncodedFrames, PrecomputedFrames
 from taptr.model.sliding_window import QuerySet, run_windows
+from taptr.runtime.frames import EncodedFrames, PrecomputedFrames
 
 
 def _video(frames: int, generator: torch.Generator, batch: int = 1, size=(64, 64)) -> torch.Tensor:

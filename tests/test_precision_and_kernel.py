@@ -17,9 +17,9 @@ from taptr.cli.model_options import KERNEL_CHOICES, add_model_arguments, load_pr
 from taptr.export import compile as compile_module
 from taptr.io.tracks import load_tracks_npz
 from taptr.io.video import write_video
-from taptr.model import kernel_choice, measured
-from taptr.model.kernel_choice import choose_kernel, time_kernels
 from taptr.model.ops import dense
+from taptr.runtime import kernel_choice, measured
+from taptr.runtime.kernel_choice import choose_kernel, time_kernels
 
 QUERIES = torch.tensor([[0, 10.0, 20.0], [3, 40.0, 30.0], [5, 70.0, 50.0]])
 

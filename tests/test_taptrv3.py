@@ -12,10 +12,10 @@ import taptr
 from taptr.api.online import OnlineTracker
 from taptr.api.support import grid_positions, local_offsets, with_support
 from taptr.checkpoint import CheckpointError, checkpoint_contents
-from taptr.model.frames import EncodedFrames
 from taptr.model.sliding_window import QuerySet, run_windows
 from taptr.model.v3 import TAPTRv3, per_frame
 from taptr.model.v3.history import History, frame_weights
+from taptr.runtime.frames import EncodedFrames
 from tests.helpers import generated_official_weights, load_golden, noise_video
 
 
@@ -192,6 +192,48 @@ def test_history_holds_the_last_frames_when_limited():
     for frame in range(40):
         unlimited.open_frame(frame, torch.zeros(1, 1, 2).double(), torch.zeros(1, 1))
     assert unlimited.length == 40 and unlimited.first == 0
+
+
+def test_history_limit_longer_than_the_clip_allocates_only_the_frames_seen():
+    """Issue 37.1: a limit of 10^9 (or 100,000) held buffers sized at the limit."""
+    like = torch.zeros(1)
+    limited, unlimited = History(2, 16, limit=10**9, like=like), History(2, 16, limit=0, like=like)
+    for history in (limited, unlimited):
+        history.add_points(3)
+        for frame in range(6):
+            history.open_frame(frame, torch.full((2, 3, 16), float(frame)), torch.zeros(2, 3))
+    assert limited._content.shape[2] == unlimited._content.shape[2] == 8  # grown by doubling
+    assert torch.equal(limited.content, unlimited.content)
+
+
+def test_predictor_with_a_history_limit_of_100000_tracks_like_without(tiny_v3):
+    video = noise_video(8, seed=3)[:, :40, :56]
+    limited = _predictor(tiny_v3, history_frames=100_000).track(video, QUERIES)
+    whole = _predictor(tiny_v3, history_frames=0).track(video, QUERIES)
+    torch.testing.assert_close(limited.tracks, whole.tracks, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("history_frames", [0, 3])
+def test_static_shapes_read_the_whole_buffer_with_the_same_result(tiny_v3, history_frames):
+    """The static step (every buffer slot, empty ones at weight 0) equals the exact one."""
+    video, queries, model = _video(11), _queries(6, 11), copy.deepcopy(tiny_v3).double()
+    with torch.no_grad():
+        runs = [
+            per_frame.run_frames(
+                model,
+                queries,
+                11,
+                EncodedFrames(model, video),
+                video.dtype,
+                history_frames=history_frames,
+                static_shapes=static,
+            )
+            for static in (False, True)
+        ]
+    torch.testing.assert_close(runs[1].positions, runs[0].positions, atol=1e-6, rtol=0)
+    torch.testing.assert_close(
+        runs[1].visibility_logits, runs[0].visibility_logits, atol=1e-5, rtol=0
+    )
 
 
 def test_frame_weights_follow_the_official_mask():

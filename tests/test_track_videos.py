@@ -7,13 +7,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 
 import taptr
-from taptr.checkpoint import save_checkpoint
 from taptr.cli.main import main
 from taptr.cli.videos import expand_videos, result_folders
-from taptr.config import get_config
 from taptr.io.tracks import load_tracks_npz
 from taptr.io.video import read_video, write_video
 from tests.helpers import run_torchrun
@@ -37,10 +34,8 @@ def clips(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def checkpoint(tmp_path_factory):
-    torch.manual_seed(0)
-    built = taptr.build_model(get_config("tiny").replace(context_points=6))
-    return save_checkpoint(built, tmp_path_factory.mktemp("model") / "tiny.pth")
+def checkpoint(tiny_checkpoint):
+    return tiny_checkpoint
 
 
 def test_streamed_tracks_equal_the_predictor(clips, checkpoint, tmp_path, capsys):

@@ -1,4 +1,4 @@
-"""taptr: TAPTRv2 point tracking in pure PyTorch.
+"""taptr: Tracking Any Point with TAPTR v1, TAPTRv2 and TAPTRv3, in pure PyTorch.
 
 Heavy modules (torch, the model) are imported on first use of a name, not at import.
 """

@@ -28,12 +28,15 @@ import torch
 from torch import Tensor, nn
 
 from taptr.checkpoint_guards import (
+    CheckpointError,
+    UnsafeCheckpointError,
     all_finite,
     config_shape_problem,
     key_name,
     named_failures,
     short_repr,
 )
+from taptr.checkpoint_identity import architecture_problem
 from taptr.config import ModelConfig
 from taptr.io import limits
 from taptr.io.atomic import atomic_path
@@ -53,14 +56,6 @@ from taptr.official.convert import (
 FORMAT = "taptr"
 VERSION = 1
 SAFE_GLOBALS: list[Any] = [argparse.Namespace]
-
-
-class CheckpointError(ValueError):
-    """A checkpoint file cannot be used; the message names the file and the reason."""
-
-
-class UnsafeCheckpointError(CheckpointError):
-    """A checkpoint contains Python objects other than tensors and plain data."""
 
 
 def read_file(path: str | os.PathLike[str]) -> Any:
@@ -88,7 +83,7 @@ def read_file(path: str | os.PathLike[str]) -> Any:
         raise
     except ValueError as error:
         raise CheckpointError(str(error)) from None
-    if _is_web_page(path):
+    if is_web_page(path):
         raise CheckpointError(
             f"{path} is a web page (HTML), not a checkpoint: a download link saved its page "
             "instead of the file (Google Drive answers curl and wget with a confirmation page "
@@ -122,7 +117,7 @@ def read_file(path: str | os.PathLike[str]) -> Any:
     return loaded
 
 
-def _is_web_page(path: Path) -> bool:
+def is_web_page(path: Path) -> bool:
     """Whether the file starts like an HTML document (after blanks and a byte-order mark)."""
     with path.open("rb") as stream:
         head = stream.read(512).lstrip(b"\xef\xbb\xbf \t\r\n").lower()
@@ -342,14 +337,36 @@ def load_checkpoint(path: str | os.PathLike[str], *, device: str | torch.device 
 
 
 def load_checkpoint_and_threshold(
-    path: str | os.PathLike[str], *, device: str | torch.device = "cpu"
+    path: str | os.PathLike[str],
+    *,
+    device: str | torch.device = "cpu",
+    expected: tuple[str, str] | None = None,
 ) -> tuple[TAPTR, float | None]:
-    """`load_checkpoint` and `read_visibility_threshold` of one file, reading it once."""
+    """`load_checkpoint` and `read_visibility_threshold` of one file, reading it once.
+
+    Args:
+        path: the checkpoint file.
+        device: where to put the model.
+        expected: for named weights, (name, preset): a file of another architecture
+            is refused before any module is built (`taptr.checkpoint_identity`).
+    """
     with named_failures(path):
         checkpoint = _read_mapping(path)
-        model, weights = model_from_checkpoint(checkpoint, str(path))
+        config, weights = checkpoint_contents(checkpoint, str(path))
+        if expected is not None:
+            check_architecture(config, path, *expected)
+        model = build_model(config)
         load_weights(model, weights, str(path))
         return model.to(device).eval(), _stored_threshold(checkpoint, str(path))
+
+
+def check_architecture(
+    config: ModelConfig, path: str | os.PathLike[str], name: str, preset: str
+) -> None:
+    """Raises `CheckpointError` when a file under ``name`` holds another architecture."""
+    problem = architecture_problem(config, name, preset)
+    if problem is not None:
+        raise CheckpointError(f"{path} {problem}")
 
 
 def _read_mapping(path: str | os.PathLike[str]) -> Mapping[str, Any]:

@@ -38,6 +38,14 @@ _REPR.maxlevel, _REPR.maxstring, _REPR.maxother = 2, 40, 40
 _REPR.maxlist = _REPR.maxdict = _REPR.maxtuple = _REPR.maxset = 4
 
 
+class CheckpointError(ValueError):
+    """A checkpoint file cannot be used; the message names the file and the reason."""
+
+
+class UnsafeCheckpointError(CheckpointError):
+    """A checkpoint contains Python objects other than tensors and plain data."""
+
+
 def short_repr(value: Any) -> str:
     """A short repr of data read from a file: bounded in length and depth, never recursing."""
     return _REPR.repr(value)
@@ -110,8 +118,6 @@ def named_failures(path: str | os.PathLike[str]) -> Iterator[None]:
     An allocator's failure stays what it is: the command line words it with the knobs
     (`taptr.memory_estimate.allocator_failure`).
     """
-    from taptr.checkpoint import CheckpointError
-
     try:
         yield
     except _UNNAMED_FAILURES as error:

@@ -8,10 +8,13 @@ this order:
    ``huggingface_hub``: the local Hub cache is used when it holds the file, offline mode
    (``HF_HUB_OFFLINE=1``) never touches the network, and a download is checked against a
    SHA-256 (the registry's when set, else the Hub's own for large files);
-3. the name of weights the authors host where no tool can fetch them reliably
-   (`MANUAL`: TAPTRv3's two checkpoints, on Google Drive): read from the weights folder
-   (`weights_dir`, ``TAPTR_WEIGHTS_DIR``), and when missing, one message with the link,
-   the licence and where to put the file; nothing is fetched and nothing waits;
+3. the name of weights the authors host on Google Drive (`MANUAL`: TAPTRv3's two
+   checkpoints, `taptr.drive_weights`): read from the weights folder
+   (``TAPTR_WEIGHTS_DIR``, default ``~/.cache/taptr/weights``);
+   when missing, downloaded once into it through ``gdown`` (``pip install 'taptr[drive]'``,
+   `taptr.drive`) after a one-line notice of their licence, and checked before they are
+   kept; without gdown or network, one message with the link, the licence and where to
+   put the file;
 4. the name of weights that ship inside the package (`BUNDLED`);
 5. a preset name: the architecture with freshly initialised, untrained weights (a warning
    says so).
@@ -22,7 +25,9 @@ downloaded once (after a one-line notice of their licence); when they cannot be 
 corrupt download), the bundled `FALLBACK_MODEL` with one warning line saying what to expect
 and how to get the paper's weights. A single attempt: no retries.
 
-Every file is read by the strict, safe loader (`taptr.checkpoint.load_checkpoint`).
+Every file is read by the strict, safe loader (`taptr.checkpoint.load_checkpoint`); a file
+under the name of published or Drive weights must hold the architecture that name promises
+(`taptr.checkpoint_identity`): another model's weights are refused with what they are.
 Nothing is downloaded at import. ``HF_ENDPOINT`` and ``HF_HUB_OFFLINE`` are read at call time.
 """
 
@@ -42,6 +47,12 @@ import torch
 
 from taptr.checkpoint import CheckpointError, load_checkpoint_and_threshold
 from taptr.config import PRESETS
+from taptr.drive_weights import (
+    IDEA_LICENCE,
+    MANUAL,
+    check_download,
+    manual_path,
+)
 from taptr.model.build import build_model
 from taptr.model.taptr import TAPTR
 
@@ -76,58 +87,16 @@ class HubWeights:
 
 # the authors publish both generations in one repository; digests are added once the
 # published files are verified, and are checked from then on
-_IDEA_LICENCE = "IDEA License 1.0, non-commercial use only"
 WEIGHTS = {
     "taptrv2-official": HubWeights(
-        "HYeungLee/TAPTR-Series", "taptrv2.pth", "taptrv2", "TAPTRv2", _IDEA_LICENCE
+        "HYeungLee/TAPTR-Series", "taptrv2.pth", "taptrv2", "TAPTRv2", IDEA_LICENCE
     ),
     "taptrv1-official": HubWeights(
-        "HYeungLee/TAPTR-Series", "taptrv1.pth", "taptrv1", "TAPTR v1", _IDEA_LICENCE
+        "HYeungLee/TAPTR-Series", "taptrv1.pth", "taptrv1", "TAPTR v1", IDEA_LICENCE
     ),
 }
 """Weights on the Hugging Face Hub: name → where the file is and what it holds."""
 
-
-@dataclass(frozen=True)
-class ManualWeights:
-    """Weights the authors host on Google Drive, which a user downloads in a browser.
-
-    Drive answers scripted downloads of large files (``curl``, ``wget``) with a
-    confirmation web page, so taptr fetches nothing: it reads the file from `weights_dir`
-    and, when it is missing, says where to get it and where to put it.
-
-    Attributes:
-        url: the authors' link to the file.
-        filename: the file's name, as the authors' evaluation script expects it.
-        preset: the architecture the file holds (a key of `taptr.config.PRESETS`).
-        title: the model's name in messages.
-        licence: the weights' licence.
-    """
-
-    url: str
-    filename: str
-    preset: str
-    title: str
-    licence: str
-
-
-MANUAL = {
-    "taptrv3-official": ManualWeights(
-        "https://drive.google.com/file/d/1frPX9R_nKDG8FmL-vH6l_2HsJfhvEjtg",
-        "TAPTRv3_resnet18_384x512.pth",
-        "taptrv3",
-        "TAPTRv3 (ResNet-18, 384 × 512)",
-        _IDEA_LICENCE,
-    ),
-    "taptrv3-r50-official": ManualWeights(
-        "https://drive.google.com/file/d/19iql2VTqGIeoyg_wt3JjpohszN5UE6s1",
-        "TAPTRv3_resnet50_512x512.pth",
-        "taptrv3-r50",
-        "TAPTRv3 (ResNet-50, 512 × 512)",
-        _IDEA_LICENCE,
-    ),
-}
-"""Weights downloaded by hand: name → where the authors host the file and what it holds."""
 
 BUNDLED = {"taptr-small-synthetic": ("taptr-small-synthetic.pth", "small")}
 """Weights inside the package: name → (file under ``taptr/weights``, preset it was trained as)."""
@@ -162,8 +131,10 @@ class ModelChoice(NamedTuple):
     visibility_threshold: float | None = None
 
 
-def _from_file(path: str | os.PathLike[str], name: str) -> ModelChoice:
-    model, threshold = load_checkpoint_and_threshold(path)
+def _from_file(path: str | os.PathLike[str], name: str, preset: str | None = None) -> ModelChoice:
+    """The model in ``path``; with ``preset`` (named weights), of that architecture only."""
+    expected = (name, preset) if preset is not None else None
+    model, threshold = load_checkpoint_and_threshold(path, expected=expected)
     return ModelChoice(model, name, Path(path), visibility_threshold=threshold)
 
 
@@ -182,34 +153,34 @@ def known_names() -> list[str]:
     return [*WEIGHTS, *MANUAL, *BUNDLED, *PRESETS]
 
 
-def weights_dir() -> Path:
-    """Where hand-downloaded weights are looked for.
+def download(name: str, *, cache_dir: str | os.PathLike[str] | None = None) -> Path:
+    """The local file of named weights, fetched now when missing (``taptr download``).
 
-    ``TAPTR_WEIGHTS_DIR`` (read now, not at import), else ``~/.cache/taptr/weights``.
-    """
-    folder = os.environ.get("TAPTR_WEIGHTS_DIR")
-    return Path(folder) if folder else Path.home() / ".cache" / "taptr" / "weights"
-
-
-def manual_path(name: str) -> Path:
-    """The file of hand-downloaded weights ``name`` in `weights_dir`.
+    For machines that will be offline later: published weights go to the Hugging Face
+    cache, Drive weights to `weights_dir`, each checked as loading checks them (the
+    architecture its name promises); bundled weights are already installed.
 
     Raises:
-        FileNotFoundError: it is not there; the message gives the link, the licence and
-            where to put the file (or the path to pass instead).
+        KeyError: ``name`` is a preset (no weights) or unknown; the message lists the names.
+        FileNotFoundError: the file cannot be had (see `weights_path`, `manual_path`).
+        CheckpointError: the file is not what its name says.
     """
-    entry = MANUAL[name]
-    path = weights_dir() / entry.filename
-    if path.is_file():
+    if name in WEIGHTS:
+        path = _published_path(name, cache_dir)
+        check_download(path, name, WEIGHTS[name].preset)
         return path
-    raise FileNotFoundError(
-        f"{name}: {entry.filename} is not in {path.parent}. The authors host {entry.title} on "
-        f"Google Drive ({entry.licence}): open {entry.url} in a browser and download it "
-        f"(curl and wget get Drive's confirmation page, not the file), then put it at {path} "
-        f"(or set TAPTR_WEIGHTS_DIR to its folder), or pass its path: --checkpoint "
-        f"/path/to/{entry.filename} on the command line, "
-        f'taptr.from_pretrained("/path/to/{entry.filename}") in Python'
-    )
+    if name in MANUAL:
+        path = manual_path(name)
+        check_download(path, name, MANUAL[name].preset)
+        return path
+    if name in BUNDLED:
+        path = bundled_path(name)
+        if path is None:
+            raise FileNotFoundError(f"the bundled weights {name!r} are not installed")
+        return path
+    names = ", ".join([*WEIGHTS, *MANUAL, *BUNDLED])
+    what = "a preset: untrained, it has no weights" if name in PRESETS else "not a known name"
+    raise KeyError(f"{name!r} is {what}; named weights: {names}")
 
 
 def hub_offline() -> bool:
@@ -400,9 +371,9 @@ def load_model(
     if Path(name).is_file():
         return _from_file(name, name)
     if name in WEIGHTS:
-        return _from_file(_published_path(name, cache_dir), name)
+        return _from_file(_published_path(name, cache_dir), name, WEIGHTS[name].preset)
     if name in MANUAL:
-        return _from_file(manual_path(name), name)
+        return _from_file(manual_path(name), name, MANUAL[name].preset)
     if name in BUNDLED:
         return _bundled(name)
     if name in PRESETS:
@@ -425,7 +396,8 @@ def resolve_model(
 def _default_model(cache_dir: str | os.PathLike[str] | None) -> ModelChoice:
     """The paper's weights when they can be had, else the bundled model and one warning."""
     try:
-        return _from_file(_published_path(DEFAULT_MODEL, cache_dir), DEFAULT_MODEL)
+        path = _published_path(DEFAULT_MODEL, cache_dir)
+        return _from_file(path, DEFAULT_MODEL, WEIGHTS[DEFAULT_MODEL].preset)
     except (FileNotFoundError, ModuleNotFoundError, CheckpointError) as error:
         reason = _reason(error)
     notice = fallback_notice(reason)
@@ -437,9 +409,9 @@ def _reason(error: BaseException) -> str:
     """The short cause of a failed fetch, for the fallback line."""
     if isinstance(error, ModuleNotFoundError):
         return "huggingface_hub is not installed"
-    if isinstance(error, CheckpointError):
-        return "the download was corrupt"
     text = str(error)
+    if isinstance(error, CheckpointError):  # a corrupt download, or another model's file
+        return "the download was corrupt" if "SHA-256" in text else _first_line(error)
     if "HF_HUB_OFFLINE" in text:
         return "not in the Hugging Face cache and HF_HUB_OFFLINE=1"
     found = re.search(r"and (the Hub could not be reached|the download failed)", text)

@@ -10,7 +10,7 @@ h × w the model's input size, S = Σ_l ⌈h/s_l⌉·⌈w/s_l⌉ the encoder tok
                    (a window's encoded frames, their stacked copy, and each decoder layer's
                    key and value tables of the window's frames)
     backbone     = 4 · h · w · BACKBONE_FLOATS[kind] · F (the trunk activations of the F
-                   frames of one encoder call, `taptr.model.encode_choice`)
+                   frames of one encoder call, `taptr.runtime.encode_choice`)
     read ahead   = 4 · S · C · (F − 1) (frames encoded ahead of the window)
     points       = 4 · N · W · (5 · M·L·P·4 + POINT_CHANNELS · C + ffn)
                    (per point and window frame: the deformable sampling's corner indices,
@@ -20,6 +20,11 @@ h × w the model's input size, S = Σ_l ⌈h/s_l⌉·⌈w/s_l⌉ the encoder tok
                    layer, kept until the end)
     history      = 4 · N · T_h · (C + 1)  (TAPTRv3 only: each point's content and visibility
                    on the T_h held frames, T_h = min(T, the history limit))
+    encoder      = 4 · S · (4 · C + 5 · M·L·P_e) · F  (TAPTRv3 only: the encoder's working set
+                   per token, projected values and outputs, sampling offsets and weights of
+                   P_e encoder points; TAPTRv2's 8-frame window absorbs it in
+                   FEATURE_SHARE, TAPTRv3's window of one frame does not: at 1024 × 1024
+                   its run peaked at 1,388 MiB RSS against 867 MiB estimated without it)
     frames       = 3 · H · W_v · (T if the whole video is held else the window + a segment)
                    + 4 · 3 · H · W_v · W · 2 (a window of frames as floats while resizing)
     total        = OVERHEAD + the above
@@ -154,7 +159,7 @@ def estimate_tracking(
             streamed (``taptr track`` on a file that states its length).
         backward: whether a time-reversed pass runs too (a segment of frames held).
         history_frames: TAPTRv3's history limit (0: the whole video; None: the config's).
-        frames_per_call: frames per encoder call (`taptr.model.encode_choice`): the
+        frames_per_call: frames per encoder call (`taptr.runtime.encode_choice`): the
             backbone's activations are those of this many frames, and up to this many
             encoded frames beyond the window are held ahead of it.
     """
@@ -182,6 +187,9 @@ def estimate_tracking(
         limit = config.history_frames if history_frames is None else history_frames
         kept = min(num_frames, limit) if limit else num_frames
         parts["history"] = 4 * num_points * kept * (channels + 1)
+        encoder_samples = config.num_heads * config.num_levels * config.encoder_points
+        per_token = 4 * channels + 5 * encoder_samples
+        parts["encoder"] = 4 * tokens * per_token * frames_per_call
     return Estimate(parts)
 
 

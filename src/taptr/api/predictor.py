@@ -16,7 +16,7 @@ import contextlib
 import logging
 import os
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
@@ -33,15 +33,16 @@ from taptr.api.support import GRID_POINTS, LOCAL_OFFSETS, with_support
 from taptr.config import SUPPORT_KINDS
 from taptr.geometry import normalized_to_pixels
 from taptr.memory_estimate import check_memory, estimate_tracking
-from taptr.model.cpu_choice import choose_cpu_execution
-from taptr.model.drivers import run_tracker, step_count
-from taptr.model.encode_choice import choose_frames_per_call
-from taptr.model.frames import EncodedFrames
-from taptr.model.kernel_choice import choose_kernel
 from taptr.model.ops.dense import bfloat16_products, native_bfloat16
 from taptr.model.sliding_window import QuerySet
 from taptr.model.taptr import TAPTR, normalize_frames
 from taptr.model.v3.taptr import TAPTRv3
+from taptr.runtime.cpu_choice import choose_cpu_execution
+from taptr.runtime.denormals import flushed_denormals
+from taptr.runtime.drivers import run_tracker, step_count
+from taptr.runtime.encode_choice import choose_frames_per_call
+from taptr.runtime.frames import EncodedFrames
+from taptr.runtime.kernel_choice import choose_kernel
 from taptr.types import AUTOCAST_TYPES, TrackingResult
 
 logger = logging.getLogger(__name__)
@@ -51,7 +52,9 @@ VideoInput = np.ndarray | Tensor | str | os.PathLike
 LOCAL_SUPPORT_BUDGET = 2048
 """With the default support, TAPTRv3 gets 63 local points per query only while that keeps
 it at or below this many points (32 queries); more queries get the 36 grid points alone,
-and support each other (docs/BENCHMARKS.md measures what it costs)."""
+and support each other. docs/RESULTS.md ("Support points for TAPTRv3's queries") measures
+what each scheme costs: the local points make a frame 7, 29 and 110 times dearer than the
+grid alone at 8, 32 and 256 queries; their accuracy against the grid is not measured yet."""
 SUPPORT_CHOICES = (*SUPPORT_KINDS, "none")
 
 
@@ -72,13 +75,26 @@ def precision_context(
     """The context a model runs in for an ``autocast`` type (None: float32 as it is).
 
     ``torch.autocast`` on accelerators; on the CPU, bfloat16 is oneDNN bfloat16 products
-    (`bfloat16_products`, with the trunk stored by `TAPTR.bfloat16_trunk`).
+    (`bfloat16_products`, with the trunk stored by `TAPTR.bfloat16_trunk`), and denormal
+    floats are flushed to zero (`taptr.runtime.denormals`).
     """
     if autocast is None:
-        return contextlib.nullcontext()
-    if autocast == torch.bfloat16 and device_type == "cpu":
-        return bfloat16_products()
-    return torch.autocast(device_type, dtype=autocast)
+        products: contextlib.AbstractContextManager[object] = contextlib.nullcontext()
+    elif autocast == torch.bfloat16 and device_type == "cpu":
+        products = bfloat16_products()
+    else:
+        products = torch.autocast(device_type, dtype=autocast)
+    return _both(flushed_denormals(device_type), products)
+
+
+@contextlib.contextmanager
+def _both(
+    first: contextlib.AbstractContextManager[object],
+    second: contextlib.AbstractContextManager[object],
+) -> Iterator[None]:
+    """Enters two contexts when the block starts (not when this is called)."""
+    with first, second:
+        yield
 
 
 class Predictor:
@@ -102,16 +118,18 @@ class Predictor:
             `taptr.model.ops.dense.bfloat16_products`), and float32 with a warning where it
             has not. Accuracy against float32 is in docs/BENCHMARKS.md.
         kernel: the deformable-attention kernel: ``auto`` measures ``gather`` against
-            ``grid_sample`` on accelerators (`taptr.model.kernel_choice`) and keeps the
+            ``grid_sample`` on accelerators (`taptr.runtime.kernel_choice`) and keeps the
             model's execution on CPU (where ``gather`` is measured faster); ``measure``
             measures on any device; ``gather`` or ``grid_sample`` sets it.
         frames_per_call: frames encoded per encoder call: ``auto`` times the candidates
             that fit the device's budget at the input size, once per machine and shape,
-            and remembers the fastest (`taptr.model.encode_choice`; one frame per call for
+            and remembers the fastest (`taptr.runtime.encode_choice`; one frame per call for
             512 × 512 on a CPU, without timing); a number sets it. Speed only. On a CPU
             the predictor also times, once per machine and shape, whether the fast
             execution's linear layers run faster through oneDNN or the BLAS and its
-            frames channels-last or not (`taptr.model.cpu_choice`).
+            frames channels-last or not (`taptr.runtime.cpu_choice`). Under float16 autocast
+            on a CPU (slow there) nothing is timed and ``auto`` is one frame per call.
+            The memory of the smallest run at the input size is checked before any timing.
         context_points: pad each video's queries with seeded context points up to this
             many points before the model runs (`taptr.api.context`); they are never
             returned. Default: the model config's (800 for the paper's weights, the points
@@ -129,6 +147,9 @@ class Predictor:
         source: the checkpoint's name or path, for messages.
         notice: what to tell users about the model (the default model's fallback line).
     """
+
+    checkpoint_path: str | os.PathLike[str] | None = None
+    """The file the weights were read from, named or not (set by `from_pretrained`)."""
 
     def __init__(
         self,
@@ -198,14 +219,25 @@ class Predictor:
         if not 0 < visibility_threshold < 1:
             raise ValueError(f"visibility_threshold must lie in (0, 1), got {visibility_threshold}")
         self.visibility_threshold = visibility_threshold
+        # the smallest run's memory before any timing: timing an input size that cannot
+        # run would take minutes and gigabytes only to be refused after it
+        self.frames_per_call = 1
+        self._check_memory(1, 0, (1, 1), False, smallest=True)
         # last: these time the model, which only a valid predictor needs
+        self.frames_per_call = self._choose_speed_settings(kernel, frames_per_call)
+
+    def _choose_speed_settings(self, kernel: str, frames_per_call: int | str) -> int:
+        """Sets the kernel and CPU execution, timed where asked; returns frames per call."""
         choose_kernel(self.model, self.device, kernel, self.input_size)
+        # float16 on a CPU runs most kernels without native support, minutes per timing:
+        # nothing is timed there, one frame per call (float32 or bfloat16 are faster)
+        cpu_float16 = self.device.type == "cpu" and self.autocast == torch.float16
+        if cpu_float16 and frames_per_call == "auto":
+            frames_per_call = 1
         with self.precision():
-            if self.device.type == "cpu":
+            if self.device.type == "cpu" and not cpu_float16:
                 choose_cpu_execution(self.model, self.input_size)
-            self.frames_per_call = choose_frames_per_call(
-                self.model, self.device, self.input_size, frames_per_call
-            )
+            return choose_frames_per_call(self.model, self.device, self.input_size, frames_per_call)
 
     @classmethod
     def from_pretrained(
@@ -226,7 +258,9 @@ class Predictor:
             kwargs["visibility_threshold"] = choice.visibility_threshold
         kwargs.setdefault("source", choice.name)
         kwargs.setdefault("notice", choice.notice)
-        return cls(choice.model, **kwargs)
+        predictor = cls(choice.model, **kwargs)
+        predictor.checkpoint_path = choice.path
+        return predictor
 
     @torch.no_grad()
     def track(
@@ -284,9 +318,18 @@ class Predictor:
         return TrackingResult(tracks, visibility, logits, query)
 
     def _check_memory(
-        self, num_frames: int, num_points: int, frame_size: tuple[int, int], backward: bool
+        self,
+        num_frames: int,
+        num_points: int,
+        frame_size: tuple[int, int],
+        backward: bool,
+        *,
+        smallest: bool = False,
     ) -> None:
         """Refuses a run whose estimated peak memory exceeds the budget (before it starts).
+
+        ``smallest``: the check of the smallest run at the input size (no query, one frame
+        of one pixel), made before anything is timed; its message names the input size only.
 
         Raises:
             taptr.memory_estimate.MemoryEstimateError: a one-line ValueError naming the
@@ -306,8 +349,12 @@ class Predictor:
             history_frames=self.history_frames,
             frames_per_call=self.frames_per_call,
         )
-        what = f"tracking {points:,} points through {num_frames:,} frames at {self.input_size}"
-        knobs = "use a smaller input_size, fewer points or fewer frames"
+        size = "x".join(map(str, self.input_size))
+        what = f"tracking {points:,} points through {num_frames:,} frames at {size}"
+        knobs = "use a smaller input size (input_size=, --input-size), fewer points or frames"
+        if smallest:
+            what = f"running the model at {size} at all ({points:,} points, one frame)"
+            knobs = "use a smaller input size (input_size=, --input-size)"
         check_memory(estimate, what, knobs, self.device.type)
 
     def prepare(self, frames: Tensor) -> Tensor:

@@ -11,8 +11,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from taptr.model.frames import EncodedFrames
 from taptr.model.taptr import TAPTR, FrameFeatures
+from taptr.runtime.frames import EncodedFrames
 
 
 class StreamFrames:

@@ -39,8 +39,9 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from taptr.model.measured import cpu_name
+from taptr.memory_estimate import ALLOCATOR_WORDS
 from taptr.model.ops.dense import bfloat16_hardware, linear, onednn_applies
+from taptr.runtime.measured import cpu_name
 
 if TYPE_CHECKING:
     from taptr.model.taptr import TAPTR
@@ -71,7 +72,7 @@ class BenchConfig:
         history_frames: TAPTRv3's history limit (None: the model's, the whole video).
         compile: compile the model's heavy parts first (`taptr.export.compile_model`).
         frames_per_call: frames per encoder call of the fast execution, ``auto`` as the
-            predictor chooses (`taptr.model.encode_choice`, measured once per machine and
+            predictor chooses (`taptr.runtime.encode_choice`, measured once per machine and
             shape before the clock starts) or a number; the reference execution encodes
             all frames up front.
 
@@ -166,10 +167,10 @@ def _track(
     steps: list[float] | None = None,
     frames_per_call: int = 1,
 ) -> Any:
-    from taptr.model.drivers import run_tracker
-    from taptr.model.frames import EncodedFrames, PrecomputedFrames
     from taptr.model.sliding_window import QuerySet
     from taptr.model.taptr import normalize_frames
+    from taptr.runtime.drivers import run_tracker
+    from taptr.runtime.frames import EncodedFrames, PrecomputedFrames
 
     device = torch.device(config.device)
     video = video.to(device)
@@ -201,14 +202,15 @@ def _track(
         torch.float32,
         on_step,
         history_frames=config.history_frames,
+        static_shapes=config.compile,  # TAPTRv3: one compiled decoder for every frame
     )
 
 
 def run_case(config: BenchConfig, positions_out: str | None = None) -> BenchResult:
     """Runs one case in this process (use `run_isolated` for a clean peak-memory reading)."""
     from taptr.model.build import build_model
-    from taptr.model.cpu_choice import choose_cpu_execution
-    from taptr.model.encode_choice import choose_frames_per_call
+    from taptr.runtime.cpu_choice import choose_cpu_execution
+    from taptr.runtime.encode_choice import choose_frames_per_call
 
     torch.set_num_threads(config.threads)
     torch.manual_seed(config.seed)
@@ -303,7 +305,14 @@ def run_isolated(config: BenchConfig, positions_out: str | None = None) -> Bench
     command = [sys.executable, "-m", "taptr.apps.benchmark", payload]
     done = subprocess.run(command, capture_output=True, text=True, check=False)
     if done.returncode != 0:
-        raise RuntimeError(f"benchmark worker failed:\n{done.stderr.strip()[-2000:]}")
+        # the worker's last line names its error; the traceback above it is for developers
+        last = (done.stderr.strip().splitlines() or [f"exit status {done.returncode}"])[-1]
+        if last.startswith("MemoryError") or any(w in last.lower() for w in ALLOCATOR_WORDS):
+            raise ValueError(
+                f"benchmark worker ran out of memory ({last[:300]}); use fewer --frames, "
+                "fewer --points or a smaller --size"
+            )
+        raise RuntimeError(f"benchmark worker failed: {last[:500]}")
     data = json.loads(done.stdout.strip().splitlines()[-1])
     return BenchResult(**data)
 

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import itertools
+import os
 import shlex
 import sys
 
@@ -87,6 +89,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="which execution to measure; both also compares their outputs (default both)",
     )
     parser.add_argument("--flops", action="store_true", help="also count FLOPs (slower)")
+    parser.add_argument(
+        "--count-ops",
+        action="store_true",
+        help="instead of timing, count the kernel-launching operations and host syncs each "
+        "frame dispatches (in this process, with the CPU's row blocks off, as on a GPU, and on)",
+    )
     parser.add_argument("--json", metavar="FILE", help="write all results to this JSON file")
     parser.set_defaults(func=run)
 
@@ -108,6 +116,8 @@ def run(args: argparse.Namespace) -> int:
     from taptr.config import get_config
 
     command = "taptr " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    if args.count_ops:
+        return count_ops(args, command)
     rows, cases = [], []
     if len(args.dtype) > 1 and args.execution == "both":
         raise ValueError("several --dtype values compare one --execution (fast or reference)")
@@ -194,6 +204,52 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def count_ops(args: argparse.Namespace, command: str) -> int:
+    """``--count-ops``: operations and host syncs per frame of each preset, printed."""
+    import torch
+
+    from taptr.apps.benchmark import machine, write_json
+    from taptr.config import get_config
+    from taptr.model.build import build_model
+    from taptr.runtime.op_count import as_on_accelerator, count_frame_ops
+
+    torch.set_num_threads(args.threads)
+    print("kernel-launching ATen operations and host syncs per frame, after the first step")
+    print(f"{'preset':12} {'size':>9} {'N':>6} {'row blocks':>10} {'ops/frame':>10} {'syncs':>6}")
+    counts = []
+    for preset, points in itertools.product(args.preset, args.points):
+        config = get_config(preset)
+        size = tuple(args.size or config.input_size)
+        frames = 6 if config.version == 3 else config.window_size + 2 * config.window_stride
+        for blocks in (False, True):
+            torch.manual_seed(0)
+            model = build_model(preset).eval().to(args.device)
+            if not blocks:
+                as_on_accelerator(model)
+            count = count_frame_ops(model, size, points, frames)
+            counts.append(
+                {
+                    "preset": preset,
+                    "size": size,
+                    "points": points,
+                    "row_blocks": blocks,
+                    **count._asdict(),
+                }
+            )
+            shown = "on" if blocks else "off"
+            print(
+                f"{preset:12} {size[0]:>4}x{size[1]:<4} {points:>6} {shown:>10} "
+                f"{count.per_frame:10.1f} {count.syncs_per_frame:6.2f}"
+            )
+            if not blocks:
+                top = ", ".join(f"{n} {c:.0f}" for n, c in list(count.by_name.items())[:8])
+                print(f"{'':12} most frequent: {top}")
+    print(f"command: {command}")
+    if args.json:
+        write_json(args.json, {"command": command, "machine": machine(), "op_counts": counts})
+    return 0
+
+
 def check_bench_arguments(args: argparse.Namespace) -> None:
     """Checks the options before the first measured process starts."""
     from taptr.config import PRESETS
@@ -218,9 +274,44 @@ def check_bench_arguments(args: argparse.Namespace) -> None:
             )
     check_at_least(args.frames, 1, "--frames")
     check_at_least(args.threads, 1, "--threads")
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    if cores and args.threads > cores:
+        raise ValueError(f"--threads {args.threads}: this process may use {cores} CPU threads")
     for points in args.points:
         check_at_least(points, 1, "--points")
         check_num_points(points, f"--points {points}")
     if args.json:
         check_output_file(args.json, "--json")
     check_device(args.device)  # imports torch for a GPU: after the cheap checks
+    check_bench_memory(args)
+
+
+def check_bench_memory(args: argparse.Namespace) -> None:
+    """Refuses, before any worker starts, a case whose estimated peak exceeds the budget.
+
+    Each case holds its random video (uint8) and, in the reference execution, every frame
+    encoded up front (4 · S · C bytes a frame) besides a tracking run's memory.
+    """
+    from taptr.config import get_config
+    from taptr.memory_estimate import Estimate, check_memory, encoder_tokens, estimate_tracking
+
+    for preset in args.preset:
+        config = get_config(preset)
+        height, width = args.size or config.input_size
+        knobs = f"use fewer --frames, fewer --points or a smaller --size (now {height} {width})"
+        histories = args.history_frames if config.version == 3 else [None]
+        for points, history in itertools.product(args.points, histories):
+            estimate = estimate_tracking(
+                config,
+                input_size=(height, width),
+                num_frames=args.frames,
+                num_points=points,
+                frame_size=(height, width),
+                whole_video=True,
+                history_frames=history,
+            )
+            if args.execution != "fast":
+                encoded = 4 * encoder_tokens(height, width) * config.d_model * args.frames
+                estimate = Estimate({**estimate.parts, "encoded video": encoded})
+            what = f"{preset} with {points:,} points through {args.frames:,} frames"
+            check_memory(estimate, what, knobs, args.device)

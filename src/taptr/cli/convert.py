@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 from taptr.cli.options import check_output_file
+from taptr.io.file_kind import kind, require_file
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -25,8 +25,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     """Converts and reports what was written."""
     check_output_file(args.dst, "DST")
-    if not Path(args.src).is_file():
+    if kind(args.src, "checkpoint") is None:
         raise FileNotFoundError(f"checkpoint not found: {args.src}")
+    require_file(args.src, "checkpoint")  # a folder, FIFO or device is named as such
     from taptr.checkpoint import load_checkpoint, read_visibility_threshold, save_checkpoint
 
     model = load_checkpoint(args.src)

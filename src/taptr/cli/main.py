@@ -13,6 +13,7 @@ variables and quiets third-party log lines.
 from __future__ import annotations
 
 import argparse
+import difflib
 import importlib
 import logging
 import pickle
@@ -30,6 +31,7 @@ from taptr.cli import guards
 COMMANDS = (
     "convert",
     "track",
+    "track-corpus",
     "edit",
     "sample-video",
     "eval",
@@ -43,6 +45,7 @@ COMMANDS = (
     "prepare-kinetics",
     "check-data",
     "calibrate",
+    "download",
 )
 
 USER_ERRORS: tuple[type[BaseException], ...] = (
@@ -80,6 +83,41 @@ class Parser(argparse.ArgumentParser):
         if flag:
             hint = f"; a value that starts with '-' is written {flag.group(1)}=VALUE"
         self.exit(2, f"{self.prog}: error: {message}{hint} (see '{self.prog} --help')\n")
+
+    def parse_known_args(  # type: ignore[override]
+        self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None
+    ) -> tuple[argparse.Namespace, list[str]]:
+        """Parses, after refusing a misspelled option of a command with the closest name.
+
+        argparse reports a missing required option before an unknown one (``--gird 8``
+        would read as "--grid is required"), and the unknown one in the top-level
+        parser's name, without a suggestion.
+        """
+        if args is not None and not self._subparsers:
+            unknown = unknown_option(self, list(args))
+            if unknown is not None:
+                self.error(unknown)
+        return super().parse_known_args(args, namespace)
+
+
+def unknown_option(parser: argparse.ArgumentParser, argv: list[str]) -> str | None:
+    """The error for the first ``--option`` that ``parser`` does not have, or None.
+
+    A unique prefix is an option (argparse accepts abbreviations); ``--`` ends the options.
+    """
+    known = [name for name in parser._option_string_actions if name.startswith("--")]
+    for token in argv:
+        if token == "--":
+            return None
+        if not token.startswith("--"):
+            continue
+        flag = token.split("=", 1)[0]
+        if any(name.startswith(flag) for name in known):
+            continue
+        close = difflib.get_close_matches(flag, known, n=1, cutoff=0.6)
+        hint = f"; did you mean {close[0]}?" if close else ""
+        return f"unknown option {flag}{hint}"
+    return None
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -32,7 +32,7 @@ CHECKPOINT_SUFFIXES = (".pth", ".pt", ".ckpt", ".bin", ".tar", ".pkl", ".safeten
 """File suffixes that make a missing ``--checkpoint`` a missing file rather than a name."""
 
 KERNEL_CHOICES = ("auto", "measure", "grid_sample", "gather")
-"""``--kernel`` choices (`taptr.model.kernel_choice.CHOICES`; here so --help needs no torch)."""
+"""``--kernel`` choices (`taptr.runtime.kernel_choice.CHOICES`; here so --help needs no torch)."""
 
 SUPPORT_CHOICES = ("auto", "random", "local_and_grid", "grid", "none")
 """``--support`` choices (`taptr.api.predictor.SUPPORT_CHOICES` and ``auto``)."""

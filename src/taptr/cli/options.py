@@ -35,7 +35,7 @@ def add_device_argument(parser: argparse.ArgumentParser, default: str | None = N
 
 
 def add_frames_per_call_argument(parser: argparse.ArgumentParser) -> None:
-    """``--frames-per-call auto|N`` (`taptr.model.encode_choice`)."""
+    """``--frames-per-call auto|N`` (`taptr.runtime.encode_choice`)."""
     parser.add_argument(
         "--frames-per-call",
         type=_frames_per_call,
@@ -117,6 +117,11 @@ def check_at_least(value: int | None, minimum: int, flag: str) -> None:
 def check_output_folder(path: str | os.PathLike[str], flag: str = "--out") -> None:
     """Raises a ValueError unless ``path`` is a folder, or can be created as one."""
     target = Path(path)
+    if target.is_symlink() and not target.exists():
+        raise ValueError(
+            f"{flag} {target} is a link to {os.readlink(target)}, which does not exist: "
+            "create that folder or give another"
+        )
     if target.exists() and not target.is_dir():
         raise ValueError(f"{flag} {target} is a file; give a folder")
     _check_writable(target, target, flag)

@@ -18,6 +18,7 @@ Both stop at the limit of `taptr.query_checks.max_points` before building the ar
 
 from __future__ import annotations
 
+import argparse
 import math
 import re
 from pathlib import Path
@@ -28,8 +29,6 @@ import numpy as np
 from taptr.query_checks import check_num_points, check_query_values, max_points
 
 if TYPE_CHECKING:
-    import argparse
-
     from taptr.io.video import VideoInfo
 
 MAX_LINE_CHARS = 4096
@@ -37,6 +36,33 @@ MAX_LINE_CHARS = 4096
 
 FLOAT32_MAX = float(np.finfo(np.float32).max)
 """Largest magnitude of a query number (queries are float32)."""
+
+
+def add_query_arguments(parser: argparse.ArgumentParser, *, required: bool) -> None:
+    """The query options of ``taptr track`` (and ``track-corpus``, where they are defaults)."""
+    queries = parser.add_mutually_exclusive_group(required=required)
+    queries.add_argument(
+        "--points",
+        help='queries "t,x,y;t,x,y;..." in pixels of the input video: commas between the '
+        "numbers of a point, ';' between points",
+    )
+    queries.add_argument(
+        "--points-file",
+        help="UTF-8 text/csv file with one t,x,y query per line (commas or spaces; '#' "
+        "comments and a header line allowed)",
+    )
+    queries.add_argument("--grid", type=int, metavar="N", help="track an N×N grid on --query-frame")
+    queries.add_argument(
+        "--mask",
+        help="track points sampled inside this mask (an image of the video's size; inside = "
+        "pixels neither black nor transparent)",
+    )
+    parser.add_argument(
+        "--query-frame", type=int, default=0, help="frame of --grid and --mask (default 0)"
+    )
+    parser.add_argument(
+        "--mask-stride", type=int, default=8, help="pixel spacing of --mask points (default 8)"
+    )
 
 
 def parse_points(text: str, flag: str = "--points") -> np.ndarray:
@@ -131,20 +157,16 @@ def check_listed_points(
 
 def build_queries(args: argparse.Namespace, num_frames: int, height: int, width: int) -> np.ndarray:
     """The (N, 3) queries the arguments ask for, on a video of that many frames and size."""
-    from taptr.api.inputs import grid_queries
-    from taptr.apps.editing import read_mask, sample_region_queries
+    from taptr.corpus.inputs import QuerySpec
+    from taptr.corpus.inputs import build_queries as queries_of
 
     listed = listed_points(args)
     if listed is not None:
         return listed
-    if not 0 <= args.query_frame < num_frames:
-        raise ValueError(f"--query-frame {args.query_frame} outside [0, {num_frames})")
-    if args.grid is not None:
-        return grid_queries(args.grid, args.query_frame, height, width, name="--grid").numpy()
-    mask = read_mask(args.mask, name="--mask", size=(height, width))
-    queries = sample_region_queries(mask, args.query_frame, stride=args.mask_stride)
-    check_num_points(len(queries), f"--mask {args.mask} with --mask-stride {args.mask_stride}")
-    return queries
+    spec = QuerySpec(
+        grid=args.grid, mask=args.mask, query_frame=args.query_frame, mask_stride=args.mask_stride
+    )
+    return queries_of(spec, num_frames, height, width, option=lambda name: f"--{name}")
 
 
 def _file_line(

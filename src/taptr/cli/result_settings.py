@@ -7,8 +7,9 @@ settings are the ones asked for now; a folder made with other settings (another 
 other queries, ``--backward``, ...) or by a taptr too old to record them is tracked again.
 ``--overwrite`` tracks every video again.
 
-Recorded: the model (name or file, and a file's SHA-256, so a retrained checkpoint saved
-under the same name counts as another model), its visibility threshold, the queries (the
+Recorded: the model (name or file, and the SHA-256 of the file its weights came from, named
+weights included, so a retrained checkpoint or other weights saved under the same name count
+as another model), its visibility threshold, the queries (the
 grid, a digest of the listed points, or a digest of the mask file), and the options that
 change what is computed or written. Not recorded: where or how fast the model runs
 (``--device``, ``--kernel``, ``--frames-per-call``, ``--compile``), which give the same
@@ -18,12 +19,16 @@ tracks up to rounding.
 from __future__ import annotations
 
 import argparse
+import functools
 import hashlib
 import json
+import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+from taptr.io.file_kind import is_regular_file
 
 if TYPE_CHECKING:
     from taptr.api.predictor import Predictor
@@ -34,6 +39,9 @@ SETTINGS_NAME = "settings.json"
 FORMAT = 1
 """Version of the settings record; a record of another version never matches."""
 
+MAX_SETTINGS_BYTES = 64 * 1024
+"""Largest settings file read: a record takes about 600 bytes."""
+
 
 def track_settings(
     args: argparse.Namespace, predictor: Predictor, listed: np.ndarray | None
@@ -42,7 +50,7 @@ def track_settings(
     return {
         "format": FORMAT,
         "model": predictor.source,
-        "model_sha256": _file_digest(predictor.source),
+        "model_sha256": _file_digest(predictor.checkpoint_path or predictor.source),
         "visibility_threshold": predictor.visibility_threshold,
         "queries": _query_settings(args, listed),
         "input_size": list(predictor.input_size),
@@ -64,9 +72,15 @@ def write_settings(folder: Path, settings: dict[str, Any]) -> None:
 
 def made_with(folder: Path, settings: dict[str, Any]) -> bool:
     """Whether ``folder`` records exactly ``settings`` (False when it records nothing)."""
+    path = folder / SETTINGS_NAME
+    # a regular file of settings' size only: a FIFO would block, a huge file is not ours
+    if not is_regular_file(path):
+        return False
     try:
-        recorded = json.loads((folder / SETTINGS_NAME).read_text(encoding="utf-8"))
-    except (OSError, ValueError):
+        if path.stat().st_size > MAX_SETTINGS_BYTES:
+            return False
+        recorded = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError, RecursionError):  # deep nesting: not a record of ours
         return False
     # a round trip through JSON, so tuples and lists, ints and floats compare alike
     return recorded == json.loads(json.dumps(settings))
@@ -85,12 +99,27 @@ def _query_settings(args: argparse.Namespace, listed: np.ndarray | None) -> dict
     }
 
 
-def _file_digest(path: str | None) -> str | None:
-    """SHA-256 of a file, or None for a model name."""
+def _file_digest(path: str | os.PathLike[str] | None) -> str | None:
+    """SHA-256 of a file, or None when there is none (an untrained preset).
+
+    Remembered per file, size and modification time: a run over many videos hashes its
+    checkpoint (hundreds of megabytes for the paper's weights) once.
+    """
     if path is None or not Path(path).is_file():
         return None
+    stat = Path(path).stat()
+    return _digest(str(Path(path).resolve()), stat.st_size, stat.st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=16)
+def _digest(path: str, size: int, mtime_ns: int) -> str:
     digest = hashlib.sha256()
     with Path(path).open("rb") as stream:
         for block in iter(lambda: stream.read(1 << 20), b""):
             digest.update(block)
     return digest.hexdigest()
+
+
+def query_settings(args: argparse.Namespace, listed: np.ndarray | None) -> dict[str, Any]:
+    """The ``queries`` entry of `track_settings` (``taptr track-corpus``: one per video)."""
+    return _query_settings(args, listed)

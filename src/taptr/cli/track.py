@@ -21,9 +21,15 @@ from taptr.cli.options import (
     check_at_least,
     check_output_folder,
 )
-from taptr.cli.points import build_queries, check_listed_points, listed_points
+from taptr.cli.points import (
+    add_query_arguments,
+    build_queries,
+    check_listed_points,
+    listed_points,
+)
 from taptr.cli.result_settings import SETTINGS_NAME, made_with, track_settings, write_settings
 from taptr.cli.run_memory import check_run_memory
+from taptr.io.atomic import check_result_names
 
 if TYPE_CHECKING:
     from taptr.api.predictor import Predictor
@@ -43,7 +49,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "(replacing an earlier run's files together, or not at all if interrupted). Frames are "
         "decoded, tracked, drawn and encoded as they go, so memory does not grow with the "
         "video (--backward reads the file twice, backwards first). Under torchrun, the videos "
-        "are shared out among the processes. One run tracks at most 100,000 points; the "
+        "are shared out among the processes (for large corpora, with retries and a Parquet "
+        "dataset of results, see taptr track-corpus). One run tracks at most 100,000 points; the "
         "environment variable TAPTR_MAX_POINTS raises that.",
     )
     parser.add_argument(
@@ -54,29 +61,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "and videos whose folder already holds a finished run with the same settings are "
         "skipped (see --overwrite)",
     )
-    queries = parser.add_mutually_exclusive_group(required=True)
-    queries.add_argument(
-        "--points",
-        help='queries "t,x,y;t,x,y;..." in pixels of the input video: commas between the '
-        "numbers of a point, ';' between points",
-    )
-    queries.add_argument(
-        "--points-file",
-        help="UTF-8 text/csv file with one t,x,y query per line (commas or spaces; '#' "
-        "comments and a header line allowed)",
-    )
-    queries.add_argument("--grid", type=int, metavar="N", help="track an N×N grid on --query-frame")
-    queries.add_argument(
-        "--mask",
-        help="track points sampled inside this mask (an image of the video's size; inside = "
-        "pixels neither black nor transparent)",
-    )
-    parser.add_argument(
-        "--query-frame", type=int, default=0, help="frame of --grid and --mask (default 0)"
-    )
-    parser.add_argument(
-        "--mask-stride", type=int, default=8, help="pixel spacing of --mask points (default 8)"
-    )
+    add_query_arguments(parser, required=True)
     parser.add_argument(
         "--backward", action="store_true", help="also track before each query frame"
     )
@@ -120,6 +105,7 @@ def run(args: argparse.Namespace) -> int:
     videos = expand_videos(args.video)
     folders = result_folders(videos, Path(args.out))
     if len(videos) == 1:
+        check_result_names(folders[0], OUTPUT_NAMES)
         info = {0: check_video(args, videos[0], listed)}
     predictor = load_predictor(args)
     settings = track_settings(args, predictor, listed)
@@ -187,6 +173,7 @@ def track_video(
     """Tracks one video into ``out`` with the run's ``settings``; returns (frames, points)."""
     from taptr.api.online import FrameCountError
 
+    check_result_names(out, OUTPUT_NAMES)  # before tracking: a failed rerun mixes nothing
     declared = info.num_frames
     if declared is not None and args.max_frames is not None:
         declared = min(declared, args.max_frames)

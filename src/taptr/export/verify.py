@@ -19,9 +19,9 @@ import torch
 from taptr.data.sample_video import make_sample_clip
 from taptr.export.backends import load_steps
 from taptr.export.graph_runner import TrackArrays, track_points
-from taptr.model.frames import EncodedFrames
 from taptr.model.sliding_window import QuerySet, run_windows
 from taptr.model.taptr import TAPTR, normalize_frames
+from taptr.runtime.frames import EncodedFrames
 
 
 class Parity(NamedTuple):

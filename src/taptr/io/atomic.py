@@ -74,10 +74,15 @@ def result_folder(folder: str | os.PathLike[str], owned: Iterable[str]) -> Itera
 
     Raises:
         NotADirectoryError: ``folder`` is an existing file.
+        ValueError: one of the ``owned`` names in ``folder`` is not a file
+            (`check_result_names`), checked before the block runs and again before the
+            files are renamed; a rename that fails all the same puts the earlier files back.
     """
     target = Path(folder)
     if target.exists() and not target.is_dir():
         raise NotADirectoryError(f"{target} is a file, not a folder")
+    owned = tuple(owned)
+    check_result_names(target, owned)
     created = not target.exists()
     target.mkdir(parents=True, exist_ok=True)
     remove_stale_temporaries(target, STAGING_PREFIX, ".tmp")
@@ -88,17 +93,58 @@ def result_folder(folder: str | os.PathLike[str], owned: Iterable[str]) -> Itera
     try:
         yield staging
         with deferred_signals():
-            written = {entry.name for entry in staging.iterdir()}
-            for name in set(owned) - written:
-                (target / name).unlink(missing_ok=True)
-            for name in sorted(written):
-                os.replace(staging / name, target / name)
+            check_result_names(target, owned)
+            _swap_in(staging, target, owned)
         done = True
     finally:
         shutil.rmtree(staging, ignore_errors=True)
         if created and not done:
             with contextlib.suppress(OSError):  # not empty: someone else wrote there meanwhile
                 target.rmdir()
+
+
+def check_result_names(folder: Path, owned: Iterable[str]) -> None:
+    """Raises a ValueError when a name a command writes in ``folder`` is not a file there.
+
+    A folder (or FIFO, device, socket) named ``settings.json`` inside a result folder could
+    not be replaced by the new file, so the run would fail after tracking; said up front.
+    """
+    for name in owned:
+        path = folder / name
+        if path.is_symlink() or not path.exists() or path.is_file():
+            continue
+        described = "a folder" if path.is_dir() else "not a regular file"
+        raise ValueError(
+            f"{path} is {described}, where taptr writes its result file {name}: remove it, "
+            "or choose another output folder"
+        )
+
+
+def _swap_in(staging: Path, target: Path, owned: Iterable[str]) -> None:
+    """Moves the staged files into ``target``, replacing the ``owned`` ones, all or none.
+
+    The earlier files are first moved into a hidden folder of ``staging``; if a rename
+    fails, the new files are removed and the earlier ones put back before the error rises.
+    """
+    written = sorted(entry.name for entry in staging.iterdir())
+    previous = staging / ".previous"
+    previous.mkdir()
+    moved: list[str] = []
+    placed: list[str] = []
+    try:
+        for name in owned:
+            if (target / name).is_symlink() or (target / name).is_file():
+                os.replace(target / name, previous / name)
+                moved.append(name)
+        for name in written:
+            os.replace(staging / name, target / name)
+            placed.append(name)
+    except OSError:
+        for name in placed:
+            (target / name).unlink(missing_ok=True)
+        for name in moved:
+            os.replace(previous / name, target / name)
+        raise
 
 
 def remove_stale_temporaries(folder: Path, prefix: str, suffix: str) -> list[Path]:

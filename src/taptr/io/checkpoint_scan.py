@@ -56,6 +56,8 @@ LEGACY_PICKLES = 5
 """Pickles at the start of a legacy-format file: magic, version, sys info, object, keys."""
 
 ZIP_MAGIC = b"PK\x03\x04"
+PICKLE_PROTOCOL = b"\x80"
+"""First byte of a pickle of protocol 2 or later, as every ``torch.save`` writes."""
 
 INFLATION_FACTOR = 4
 """Records may inflate to at most this many times the file's size (plus `INFLATION_SLACK`):
@@ -396,6 +398,13 @@ def scan_checkpoint(path: str | os.PathLike[str]) -> Scan:
     limits.check("checkpoint_bytes", size, f"{path}: {size:,} bytes")
     with path.open("rb") as stream:
         magic = stream.read(len(ZIP_MAGIC))
+    if not magic:
+        raise ScanError("the file is empty (0 bytes): an incomplete download or copy")
+    if magic != ZIP_MAGIC and magic[:1] != PICKLE_PROTOCOL:
+        raise ScanError(
+            "not a PyTorch checkpoint: neither a zip archive (torch.save) nor a pickle "
+            "(torch.save before PyTorch 1.6)"
+        )
     try:
         scan = _scan_zip(path) if magic == ZIP_MAGIC else _scan_legacy(path)
     except (limits.LimitError, ScanError):

@@ -386,6 +386,12 @@ def open_video(path: str | os.PathLike[str]) -> av.container.InputContainer:
 
 def _check_header(path: Path, container: av.container.InputContainer) -> None:
     if not container.streams.video:
+        # a muxer closed before the first frame writes no track: the file holds nothing
+        if not container.streams:
+            raise ValueError(
+                f"no frames in video {path}: it holds no track with any data (an empty or "
+                "cut-off recording)"
+            )
         raise ValueError(f"no video stream in {path}")
     stream = container.streams.video[0]
     context = stream.codec_context  # None when FFmpeg has no decoder for the stream

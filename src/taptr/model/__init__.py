@@ -1,4 +1,8 @@
-"""The TAPTRv2 network: modules, the window driver and the builder."""
+"""The networks: TAPTR v1, TAPTRv2 and TAPTRv3 (`v1/`, `v3/`), their modules and builder.
+
+How they run on a given machine (drivers, measured choices, frame encoding) is
+`taptr.runtime`; this package holds what computes.
+"""
 
 from taptr.model.build import build_model
 from taptr.model.execution import EXECUTIONS, Execution, get_execution

@@ -26,9 +26,15 @@ import math
 import torch
 from torch import Tensor, nn
 from torch.nn.utils.fusion import fuse_conv_bn_weights
-from torchvision.models import resnet18, resnet50
-from torchvision.models.resnet import BasicBlock, Bottleneck
-from torchvision.ops import FrozenBatchNorm2d
+
+from taptr.model.torchvision_pair import torchvision_mismatch
+
+try:
+    from torchvision.models import resnet18, resnet50
+    from torchvision.models.resnet import BasicBlock, Bottleneck
+    from torchvision.ops import FrozenBatchNorm2d
+except RuntimeError as error:  # a torchvision built for another torch fails to register
+    raise ModuleNotFoundError(torchvision_mismatch(error), name="torchvision") from None
 
 from taptr.model.ops.row_blocks import tracks_grad
 
@@ -42,9 +48,28 @@ def frozen_norm_(norm: FrozenBatchNorm2d | nn.Identity, x: Tensor) -> Tensor:
     """
     if isinstance(norm, nn.Identity):
         return x
+    shift, scale = _shift_and_scale(norm)
+    return torch.addcmul(shift, x, scale, out=x)
+
+
+def _shift_and_scale(norm: FrozenBatchNorm2d) -> tuple[Tensor, Tensor]:
+    """The norm's (1, C, 1, 1) shift and scale, kept on the norm until its tensors change.
+
+    Four small operations per norm and frame otherwise (80 launches a frame for a
+    ResNet-18); the key is each tensor's storage and version, so loading weights or
+    moving the model makes them anew.
+    """
+    tensors = (norm.weight, norm.bias, norm.running_mean, norm.running_var)
+    key = tuple((t.data_ptr(), t._version) for t in tensors)
+    held = getattr(norm, "_taptr_shift_and_scale", None)
+    if held is not None and held[0] == key and not torch.compiler.is_compiling():
+        return held[1], held[2]
     scale = norm.weight * (norm.running_var + norm.eps).rsqrt()
     shift = norm.bias - norm.running_mean * scale
-    return torch.addcmul(shift.view(1, -1, 1, 1), x, scale.view(1, -1, 1, 1), out=x)
+    pair = (shift.view(1, -1, 1, 1), scale.view(1, -1, 1, 1))
+    if not torch.compiler.is_compiling():
+        norm._taptr_shift_and_scale = (key, *pair)
+    return pair
 
 
 def _block_in_place(block: Bottleneck | BasicBlock, x: Tensor) -> Tensor:

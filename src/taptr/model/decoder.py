@@ -236,10 +236,9 @@ class DecoderLayer(nn.Module):
         batch, frames, points, channels = x.shape
         q = (x + query_pos).reshape(batch * frames, points, channels)
         v = x.reshape(batch * frames, points, channels)  # (B·W_t, N, C)
-        tracked = masks.frame_tracking
         attention = functools.partial(self.point_attention, onednn=execution.onednn_linear)
-        if execution.grouped_point_attention and not bool(tracked.all()):
-            x = tracked_point_attention(attention, self.norm_points, q, v, tracked)
+        if masks.spatial is None and not masks.everything:
+            x = tracked_point_attention(attention, self.norm_points, q, v, masks.frame_tracking)
         else:
             x = self.norm_points(v + attention(q, q, v, masks.spatial))
         return x.view(batch, frames, points, channels)

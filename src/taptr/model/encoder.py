@@ -13,6 +13,7 @@ from torch import Tensor, nn
 from taptr.model.attention import DeformableAttention
 from taptr.model.execution import Execution
 from taptr.model.layers import MLP
+from taptr.model.ops.constants import kept
 from taptr.model.ops.row_blocks import use_row_blocks
 from taptr.model.position_encoding import feature_map_encoding
 
@@ -20,9 +21,17 @@ from taptr.model.position_encoding import feature_map_encoding
 def reference_grid(spatial_shapes: list[tuple[int, int]], device: torch.device) -> Tensor:
     """Cell centres ((j + 0.5) / W_l, (i + 0.5) / H_l) of every level, in float32.
 
+    Made once per shape and device (`taptr.model.ops.constants.kept`); never write to it.
+
     Returns:
         (S, 2) as (x, y), levels concatenated, row-major inside a level.
     """
+    return kept(
+        ("reference grid", tuple(spatial_shapes), device), lambda: _grid(spatial_shapes, device)
+    )
+
+
+def _grid(spatial_shapes: list[tuple[int, int]], device: torch.device) -> Tensor:
     grids = []
     for height, width in spatial_shapes:
         ys, xs = torch.meshgrid(
@@ -117,15 +126,27 @@ class Encoder(nn.Module):
     def position_encoding(
         self, spatial_shapes: list[tuple[int, int]], dtype: torch.dtype
     ) -> Tensor:
-        """Sine encoding of every token plus its level embedding, (S, C)."""
+        """Sine encoding of every token plus its level embedding, (S, C).
+
+        The sine part and each token's level are made once per shape (`kept`).
+        """
         channels = self.level_embed.shape[1] // 2
         device = self.level_embed.device
-        encodings = [
-            feature_map_encoding(h, w, channels, self.temperature, device).to(dtype)
-            + self.level_embed[level]
-            for level, (h, w) in enumerate(spatial_shapes)
-        ]
-        return torch.cat(encodings)
+        shapes = tuple(spatial_shapes)
+
+        def sines() -> Tensor:  # (S, C)
+            maps = [
+                feature_map_encoding(h, w, channels, self.temperature, device) for h, w in shapes
+            ]
+            return torch.cat(maps).to(dtype)
+
+        def levels() -> Tensor:  # (S,) level of each token
+            sizes = torch.tensor([h * w for h, w in shapes], device=device)
+            return torch.repeat_interleave(torch.arange(len(shapes), device=device), sizes)
+
+        sine = kept(("map encoding", shapes, channels, self.temperature, device, dtype), sines)
+        level = kept(("token levels", shapes, device), levels)
+        return sine + self.level_embed[level]
 
     def forward(self, maps: list[Tensor], execution: Execution) -> Tensor:
         """Encodes the flattened multi-scale tokens of each image the way ``execution`` says."""

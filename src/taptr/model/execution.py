@@ -28,6 +28,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
+from taptr.model.ops.gather import CHUNK_ELEMENTS as SAMPLE_BLOCK
 from taptr.model.ops.row_blocks import ENCODER_BLOCK, ROW_BLOCK
 
 Kernel = Literal["grid_sample", "gather"]
@@ -67,6 +68,11 @@ class Execution:
             frames through per-head products of each query instead of projecting every
             held frame (`taptr.model.ops.history_attention`): the same sums, about 30
             times fewer products on long histories.
+        sample_block: on CPUs, TAPTRv3's context-aware attention samples key patches for
+            blocks of queries of at most this many sampled elements (each block's samples
+            stay below the allocator's mmap threshold); None takes all queries at once.
+            Accelerators bound the blocks by memory only
+            (`taptr.model.ops.context_patches.sample_block`).
     """
 
     name: str
@@ -79,6 +85,7 @@ class Execution:
     in_place_norms: bool = False
     onednn_linear: bool = False
     history_products: bool = False
+    sample_block: int | None = SAMPLE_BLOCK
 
 
 CHANNELS_LAST_MIN_PIXELS = 192 * 192

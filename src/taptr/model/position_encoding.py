@@ -13,10 +13,17 @@ import math
 import torch
 from torch import Tensor
 
+from taptr.model.ops.constants import kept
+
 
 def _frequencies(channels: int, temperature: float, device: torch.device) -> Tensor:
-    k = torch.arange(channels, dtype=torch.float32, device=device)
-    return temperature ** (2 * torch.div(k, 2, rounding_mode="floor") / channels)
+    """(channels,) float32 d_k, made once per device (`kept`)."""
+
+    def make() -> Tensor:
+        k = torch.arange(channels, dtype=torch.float32, device=device)
+        return temperature ** (2 * torch.div(k, 2, rounding_mode="floor") / channels)
+
+    return kept(("sine frequencies", channels, temperature, device), make)
 
 
 def _interleave(angles: Tensor) -> Tensor:
@@ -35,7 +42,9 @@ def sine_embedding(coords: Tensor, channels: int, temperature: float) -> Tensor:
     Returns:
         (..., K · channels).
     """
-    freqs = _frequencies(channels, temperature, coords.device).to(coords.dtype)
+    freqs = _frequencies(channels, temperature, coords.device)
+    if coords.dtype != freqs.dtype:
+        freqs = freqs.to(coords.dtype)
     angles = coords.unsqueeze(-1) * (2 * math.pi) / freqs  # (..., K, channels)
     return _interleave(angles).flatten(-2)
 

@@ -37,7 +37,7 @@ FrameSource = Callable[[int, int], FrameFeatures]
 """Returns the features of frames first..last (inclusive), memory (B, W_t, S, C).
 
 This is how frames reach the driver: the source encodes them with the backend's encoder
-(`taptr.model.frames.EncodedFrames`, `taptr.export.graph_runner.GraphFrames`) or slices features
+(`taptr.runtime.frames.EncodedFrames`, `taptr.export.graph_runner.GraphFrames`) or slices features
 encoded beforehand."""
 
 

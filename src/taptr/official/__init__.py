@@ -2,6 +2,6 @@
 
 Their checkpoint keys (`convert`) and their model-level forward conventions
 (`model_forward`), for loading the released weights and for equivalence checks against the
-official TAPTRv2 code. Their TAP-Vid evaluation recipe is a protocol of the evaluation
-(`taptr.eval.official_protocol`).
+official TAPTR code (v1, v2 and v3). Their TAP-Vid evaluation recipe is a protocol of the
+evaluation (`taptr.eval.official_protocol`).
 """

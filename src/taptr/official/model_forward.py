@@ -12,10 +12,10 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from taptr.model.drivers import run_tracker
-from taptr.model.frames import EncodedFrames
 from taptr.model.sliding_window import QuerySet
 from taptr.model.taptr import TAPTR
+from taptr.runtime.drivers import run_tracker
+from taptr.runtime.frames import EncodedFrames
 
 
 def _check_inputs(

@@ -10,7 +10,7 @@ Two settings of the ``fast`` execution were tuned on particular CPUs and change 
   input size where the rule would use it; below the threshold frames stay as they are.
 
 Each is timed once per machine, model and input size and remembered
-(`taptr.model.measured`). Inside `dense.bfloat16_products` the products stay oneDNN's,
+(`taptr.runtime.measured`). Inside `dense.bfloat16_products` the products stay oneDNN's,
 the only path with bfloat16 kernels.
 """
 
@@ -22,10 +22,10 @@ from collections.abc import Callable
 import torch
 
 from taptr.model.execution import CHANNELS_LAST_MIN_PIXELS, Execution
-from taptr.model.measured import TOLERANCE, best_seconds, choice_key, remembered
 from taptr.model.ops.dense import bfloat16_mode, onednn_available
 from taptr.model.ops.row_blocks import ENCODER_BLOCK
 from taptr.model.taptr import TAPTR
+from taptr.runtime.measured import TOLERANCE, best_seconds, choice_key, remembered
 
 CPU = torch.device("cpu")
 
@@ -41,7 +41,7 @@ def _own_setting_holds(key: str, time_both: Callable[[], dict[bool, float]]) -> 
         seconds = time_both()
         return not seconds[False] < seconds[True] * (1 - TOLERANCE)
 
-    return bool(remembered(key, measure))
+    return bool(remembered(key, measure, valid=lambda value: isinstance(value, bool)))
 
 
 @torch.no_grad()

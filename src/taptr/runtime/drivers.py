@@ -27,6 +27,7 @@ def run_tracker(
     on_step: Callable[[], object] | None = None,
     *,
     history_frames: int | None = None,
+    static_shapes: bool = False,
 ) -> TrackOutput:
     """Tracks the queries through a whole video with the model's own driver.
 
@@ -39,13 +40,22 @@ def run_tracker(
         on_step: called after each window or frame (progress reporting).
         history_frames: TAPTRv3: the most frames held per point (0: all); default the
             model's. Other models have no history.
+        static_shapes: TAPTRv3: the decoder's shapes stay fixed from frame to frame
+            (`taptr.model.v3.per_frame.FrameState.static_shapes`), for a compiled decoder.
 
     Raises:
         ValueError: ``history_frames`` for a model without a history.
     """
     if isinstance(model, TAPTRv3):
         return run_frames(
-            model, queries, num_frames, frames, dtype, on_step, history_frames=history_frames
+            model,
+            queries,
+            num_frames,
+            frames,
+            dtype,
+            on_step,
+            history_frames=history_frames,
+            static_shapes=static_shapes,
         )
     if history_frames is not None:
         raise ValueError("history_frames applies to TAPTRv3 models only")

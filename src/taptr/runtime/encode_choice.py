@@ -10,7 +10,7 @@ per call and 58 with all 24 frames in one (65 and 104 under bfloat16 autocast).
 
 The candidates are the powers of two whose frames together stay within a device's pixel
 budget (`PIXELS_PER_CALL`); where more than one fits, each is timed on random frames of
-the input size and the choice is remembered per machine and shape (`taptr.model.measured`).
+the input size and the choice is remembered per machine and shape (`taptr.runtime.measured`).
 """
 
 from __future__ import annotations
@@ -21,9 +21,9 @@ from collections.abc import Callable
 import torch
 
 from taptr.memory_estimate import trunk_bytes
-from taptr.model.measured import TOLERANCE, best_seconds, choice_key, remembered
 from taptr.model.ops.dense import product_type
 from taptr.model.taptr import TAPTR
+from taptr.runtime.measured import TOLERANCE, best_seconds, choice_key, remembered
 
 PIXELS_PER_CALL = {"cpu": 8 * 128 * 128, "other": 16 * 512 * 512}
 """Most pixels one encoder call takes, all its frames together. On the CPU eight 128 × 128
@@ -140,5 +140,9 @@ def choose_frames_per_call(
     shape = f"{input_size[0]}x{input_size[1]} {weights} trunk {trunk} {precision_label(device)}"
     key = choice_key("frames per encoder call", device, repr(model.config), shape)
     return int(
-        remembered(key, lambda: fastest(time_frames_per_call(model, device, input_size, sizes)))
+        remembered(
+            key,
+            lambda: fastest(time_frames_per_call(model, device, input_size, sizes)),
+            valid=lambda value: type(value) is int and value in sizes,
+        )
     )

@@ -42,7 +42,7 @@ class EncodedFrames:
             chunk_size: frames per encoder call. One keeps the encoder's activations (its
                 FFN and sampling intermediates are several times a frame's memory) small;
                 more pays where a call's fixed cost dominates (small frames, GPUs:
-                `taptr.model.encode_choice`).
+                `taptr.runtime.encode_choice`).
             num_frames: frames that can be loaded (the video's length; a stream updates
                 it as frames arrive). Given, a call that must encode reads ahead to fill
                 its chunk with frames the next windows will ask for; without it only the

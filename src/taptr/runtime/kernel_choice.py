@@ -5,7 +5,7 @@ On CPU ``gather`` is several times faster (docs/BENCHMARKS.md); on GPUs the bala
 on the chip and the sizes (``grid_sample`` is one fused CUDA kernel, ``gather`` is
 ``embedding_bag``), so there the predictor times the model's own encoder on a frame of its
 input size with each kernel and keeps the faster one, remembered per machine and shape
-(`taptr.model.measured`) so that a second run measures nothing.
+(`taptr.runtime.measured`) so that a second run measures nothing.
 """
 
 from __future__ import annotations
@@ -17,9 +17,9 @@ from collections.abc import Callable
 import torch
 
 from taptr.model.execution import Kernel
-from taptr.model.measured import best_seconds, choice_key, remembered
 from taptr.model.ops import KERNELS
 from taptr.model.taptr import TAPTR
+from taptr.runtime.measured import best_seconds, choice_key, remembered
 
 CHOICES = ("auto", "measure", *KERNELS)
 """What `choose_kernel` accepts: ``auto``, ``measure`` or a kernel's name."""
@@ -104,7 +104,11 @@ def choose_kernel(
         dtype = next(model.input_projections.parameters()).dtype
         shape = f"{size[0]}x{size[1]} {dtype} {model.execution.name}"
         key = choice_key("deformable-attention kernel", device, repr(model.config), shape)
-        kernel = remembered(key, lambda: _fastest_kernel(model, device, input_size))
+        kernel = remembered(
+            key,
+            lambda: _fastest_kernel(model, device, input_size),
+            valid=lambda value: isinstance(value, str) and value in KERNELS,
+        )
     if kernel != model.execution.kernel:
         model.set_execution(dataclasses.replace(model.execution, kernel=kernel))
     return kernel  # type: ignore[return-value]

@@ -10,13 +10,16 @@ JSON file: ``$TAPTR_MEASURED`` if set, else ``$XDG_CACHE_HOME/taptr/measured.jso
 ``~/.cache/taptr/measured.json``). A second run reads it and measures nothing.
 
 A file that cannot be read or written costs only the measurement: the choice is then
-measured again and tracking goes on.
+measured again and tracking goes on. The file is read only when it is a regular file of at
+most `MAX_BYTES`, each value is checked by the choice that asks for it (a wrong one is
+measured again), and it is replaced only when it is taptr's own (it names itself in
+`FORMAT`) or missing or empty: any other file at that path is left alone, with a warning
+naming it and ``TAPTR_MEASURED`` (`taptr.runtime.measured_file`).
 """
 
 from __future__ import annotations
 
 import hashlib
-import json
 import os
 import platform
 import time
@@ -26,7 +29,7 @@ from typing import Any
 
 import torch
 
-from taptr.io.atomic import atomic_path
+from taptr.runtime.measured_file import read_choices, write_choices
 
 TOLERANCE = 0.03
 """A measured alternative must be this much faster than the setting it would replace (the
@@ -105,32 +108,27 @@ def choice_key(what: str, device: torch.device, model_signature: str, shape: str
     return f"{what} | {device_name(device)} | torch {torch.__version__} | {model} | {shape}"
 
 
-def _read(path: Path) -> dict[str, Any]:
-    try:
-        entries = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return {}
-    return entries if isinstance(entries, dict) else {}
-
-
-def remembered(key: str, measure: Callable[[], Any], path: Path | None = None) -> Any:
+def remembered(
+    key: str,
+    measure: Callable[[], Any],
+    path: Path | None = None,
+    valid: Callable[[Any], bool] | None = None,
+) -> Any:
     """The choice kept under ``key``, measured (and kept) the first time it is asked for.
 
     Args:
         key: `choice_key` of the choice.
         measure: times the candidates and returns the winner (a JSON value).
         path: the file; default `measured_path`.
+        valid: whether a value read from the file is one ``measure`` could return; a value
+            that is not (edited, or written by another version) is measured again.
     """
     path = path or measured_path()
-    entries = _read(path)
-    if key in entries:
-        return entries[key]
+    kept = read_choices(path)
+    if key in kept.choices and (valid is None or valid(kept.choices[key])):
+        return kept.choices[key]
     value = measure()
-    entries = _read(path)  # another process may have written meanwhile
-    entries[key] = value
-    try:
-        with atomic_path(path) as tmp:
-            tmp.write_text(json.dumps(entries, indent=1, sort_keys=True))
-    except OSError:
-        pass  # a read-only home: measured again next time, tracking goes on
+    kept = read_choices(path)  # another process may have written meanwhile
+    if kept.ours:
+        write_choices(path, {**kept.choices, key: value})
     return value

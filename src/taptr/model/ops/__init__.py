@@ -23,8 +23,10 @@ from torch import Tensor, nn
 
 from taptr.model.ops.dense import apply_linear
 from taptr.model.ops.gather import (
+    bilinear_corners,
     gather_deform_attn,
     gather_key_aware_attn,
+    key_aware_from_corners,
     padded_table,
     projected_table,
 )
@@ -123,22 +125,24 @@ def key_aware_attn(
     Returns:
         output (B, Q, C) and pre-softmax logits (B, Q, M, L, P).
     """
-    heads = locations.shape[2]
+    batch, points, heads, levels, samples = locations.shape[:5]
     if kernel == "gather" and tables is not None:
         channels = queries.shape[-1]
+        # every image's corners at once, as rows of one image's table: (1, B·Q, M, L·P, 4)
+        flat = locations.flatten(0, 1)[None]
+        rows, weights = bilinear_corners(flat, spatial_shapes, border=False)
         per_image = [
-            gather_key_aware_attn(
+            key_aware_from_corners(
                 queries[image : image + 1],
                 keys.view(-1, channels),  # (S·M, D) gather rows
                 values.view(-1, channels),
-                spatial_shapes,
-                locations[image : image + 1],
-                border=False,
+                rows[:, image * points : (image + 1) * points],
+                weights[:, image * points : (image + 1) * points],
             )
             for image, (keys, values) in enumerate(tables)
         ]
         outputs, logits = zip(*per_image, strict=True)
-        return torch.cat(outputs), torch.cat(logits)
+        return torch.cat(outputs), torch.cat(logits).view(batch, points, heads, levels, samples)
     if kernel == "gather":
         # two tables for a few hundred points: no border (the module doc of `gather`)
         keys = projected_table(memory, key_proj, spatial_shapes, heads, border=False, onednn=onednn)

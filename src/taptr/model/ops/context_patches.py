@@ -12,12 +12,20 @@ reproduces that placement; the keys are then sampled like any deformable locatio
 
 from __future__ import annotations
 
+import math
+from collections.abc import Callable
+from typing import TYPE_CHECKING, NamedTuple
+
 import torch
 from torch import Tensor, nn
 
+from taptr.model.ops.constants import kept
 from taptr.model.ops.dense import apply_linear
 from taptr.model.ops.gather import CHUNK_ELEMENTS, gather_sum, projected_table
 from taptr.model.ops.ms_deform_attn import sample_each_level
+
+if TYPE_CHECKING:
+    from taptr.model.execution import Execution
 
 
 def patch_offsets(patch: int, like: Tensor) -> Tensor:
@@ -82,6 +90,69 @@ def key_table(
     return keys.view(*memory.shape[:2], heads, -1)
 
 
+class _PatchTables(NamedTuple):
+    """`patch_corners`' constants of one shape, broadcast against (…, 2, K[, 2])."""
+
+    shift: Tensor  # (L, 1, 2, K): pixel offset of step k from the location's, minus 0.5
+    sizes: Tensor  # (L, 1, 2, 1): (W_l, H_l)
+    last: Tensor  # (L, 1, 2, 1, 1): (W_l − 1, H_l − 1)
+    zero: Tensor  # (L, 1, 2, 1, 1): zeros, the first cell
+    pair: Tensor  # (2,): (0, 1), the near and the far cell
+    start: Tensor  # (2,): (1, 0) and
+    sign: Tensor  # (2,): (−1, 1): the near weight is 1 − frac, the far one frac
+    line_rows: Tensor  # (L, 1, 1, 1): W_l · M, table rows per feature row
+    base: Tensor  # (B, 1, M, L, 1, 1, 1): first table row of each image, head and level
+
+
+def _patch_tables(
+    spatial_shapes: list[tuple[int, int]],
+    patch: int,
+    batch: int,
+    heads: int,
+    like: Tensor,
+    index: torch.dtype,
+) -> _PatchTables:
+    """The constants of `patch_corners`, made once per shape (`kept`)."""
+    levels = len(spatial_shapes)
+    key = ("patch", tuple(spatial_shapes), patch, batch, heads, like.device, like.dtype, index)
+    sizes = [[float(w), float(h)] for h, w in spatial_shapes]
+    steps = [k - (patch - 1) / 2 for k in range(patch)]
+    # one step is 1 / (size − 1) of a level (the official placement, module docstring):
+    # a single-pixel level, where the official code divides by zero, takes whole levels
+    shift = [
+        [[s / max(size - 1, 1) * size - 0.5 for s in steps] for size in level] for level in sizes
+    ]
+    level_rows = [h * w for h, w in spatial_shapes]
+    starts = [sum(level_rows[:i]) * heads for i in range(levels)]
+
+    def floats(name: str, values: object, *shape: int) -> Tensor:
+        make = lambda: torch.tensor(values, dtype=like.dtype, device=like.device).view(*shape)  # noqa: E731
+        return kept((*key, name), make)
+
+    def base() -> Tensor:
+        images = torch.arange(batch, device=like.device, dtype=index) * (sum(level_rows) * heads)
+        head = torch.arange(heads, device=like.device, dtype=index)
+        level = torch.tensor(starts, device=like.device, dtype=index)
+        rows = images.view(batch, 1, 1) + head.view(1, heads, 1) + level.view(1, 1, levels)
+        return rows.view(batch, 1, heads, levels, 1, 1, 1)
+
+    line_rows = [w * heads for _, w in spatial_shapes]
+    return _PatchTables(
+        shift=floats("shift", shift, levels, 1, 2, patch),
+        sizes=floats("sizes", sizes, levels, 1, 2, 1),
+        last=floats("last", [[w - 1, h - 1] for w, h in sizes], levels, 1, 2, 1, 1),
+        zero=floats("zero", [0.0] * 2 * levels, levels, 1, 2, 1, 1),
+        pair=floats("pair", [0.0, 1.0], 2),
+        start=floats("start", [1.0, 0.0], 2),
+        sign=floats("sign", [-1.0, 1.0], 2),
+        line_rows=kept(
+            (*key, "lines"),
+            lambda: torch.tensor(line_rows, device=like.device, dtype=index).view(levels, 1, 1, 1),
+        ),
+        base=kept((*key, "base"), base),
+    )
+
+
 def patch_corners(
     locations: Tensor, spatial_shapes: list[tuple[int, int]], patch: int
 ) -> tuple[Tensor, Tensor]:
@@ -89,7 +160,8 @@ def patch_corners(
 
     The same as `taptr.model.ops.gather.bilinear_corners` of `patch_locations` (borderless
     table), computed per axis, K values each, and combined by broadcasting: the floors,
-    fractions and clamps of the K² points are those of K columns and K rows.
+    fractions and clamps of the K² points are those of K columns and K rows, and the near
+    and far corner of each are one more axis of two.
 
     Args:
         locations: (B, Q, M, L, P, 2) patch centres (x, y) in [0, 1] of each level.
@@ -101,42 +173,24 @@ def patch_corners(
         shape, patch points in (a, b) order, corners (y0 x0, y0 x1, y1 x0, y1 x1).
     """
     batch, _, heads, levels, points, _ = locations.shape
-    level_rows = [h * w for h, w in spatial_shapes]
-    index = torch.int32 if batch * sum(level_rows) * heads < 2**31 else torch.int64
-    sizes = locations.new_tensor([[w, h] for h, w in spatial_shapes]).view(levels, 1, 2, 1)
-    spans = locations.new_tensor([[max(w - 1, 1), max(h - 1, 1)] for h, w in spatial_shapes]).view(
-        levels, 1, 2, 1
-    )
-    steps = patch_offsets(patch, locations)  # (K,): the same steps on both axes
-    # (B, Q, M, L, P, 2, K): as patch_locations then bilinear_corners compute them
-    pixels = (locations[..., None] + steps / spans) * sizes - 0.5
-    pixels = torch.minimum(pixels, sizes).clamp_(min=-1.0)
+    total = sum(h * w for h, w in spatial_shapes)
+    index = torch.int32 if batch * total * heads < 2**31 else torch.int64
+    tables = _patch_tables(spatial_shapes, patch, batch, heads, locations, index)
+    # (B, Q, M, L, P, 2, K): pixel of each step on each axis, as patch_locations and
+    # bilinear_corners place it; beyond one cell outside, every corner is outside
+    pixels = torch.addcmul(tables.shift, locations[..., None], tables.sizes)
+    pixels = torch.minimum(pixels, tables.sizes).clamp_(min=-1.0)
     corner = pixels.floor()
-    frac = pixels - corner
-    last = sizes - 1
-    near = (1 - frac) * ((corner >= 0) & (corner <= last))
-    far = frac * (corner < last)
-    high = torch.minimum(corner + 1, last).to(index)
-    low = torch.minimum(corner.clamp_(min=0.0), last).to(index)
-    starts = torch.tensor(
-        [sum(level_rows[:i]) for i in range(levels)], device=locations.device, dtype=index
-    ).view(levels, 1, 1, 1)
-    widths = torch.tensor(
-        [w for _, w in spatial_shapes], device=locations.device, dtype=index
-    ).view(levels, 1, 1, 1)
-    image_head = torch.arange(batch, device=locations.device, dtype=index).view(
-        batch, 1, 1, 1, 1, 1, 1
-    )
-    image_head = image_head * (sum(level_rows) * heads) + torch.arange(
-        heads, device=locations.device, dtype=index
-    ).view(1, 1, heads, 1, 1, 1, 1)
-    columns = torch.stack((low[..., 0, :], high[..., 0, :]), dim=-1) * heads  # (…, K_a, 2_x)
-    lines = torch.stack((low[..., 1, :], high[..., 1, :]), dim=-1)  # (…, K_b, 2_y)
-    lines = image_head + (starts + lines * widths) * heads
+    frac = (pixels - corner)[..., None]  # (…, 2, K, 1)
+    corners = corner[..., None] + tables.pair  # (…, 2, K, 2): near and far cell
+    # near: 1 − frac, far: frac; zero where the cell is outside its level
+    weights = torch.addcmul(tables.start, frac, tables.sign)
+    weights = weights * ((corners >= 0) & (corners <= tables.last))
+    cells = torch.clamp(corners, min=tables.zero, max=tables.last).to(index)
+    columns = cells[..., 0, :, :] * heads  # (…, K_a, 2_x)
+    lines = cells[..., 1, :, :] * tables.line_rows + tables.base  # (…, K_b, 2_y)
     rows = lines[..., None, :, :, None] + columns[..., :, None, None, :]  # (…, K_a, K_b, 2, 2)
-    across = torch.stack((near[..., 0, :], far[..., 0, :]), dim=-1)
-    down = torch.stack((near[..., 1, :], far[..., 1, :]), dim=-1)
-    weights = down[..., None, :, :, None] * across[..., :, None, None, :]
+    weights = weights[..., 1, None, :, :, None] * weights[..., 0, :, None, None, :]
     shape = (*locations.shape[:3], levels * points * patch * patch, 4)
     return rows.reshape(shape), weights.reshape(shape)
 
@@ -170,7 +224,72 @@ def sample_key_patches(
     return sampled.view(batch, heads, -1, queries, sampled.shape[-1]).permute(0, 3, 1, 4, 2)
 
 
-def query_chunks(queries: int, per_query: int) -> list[slice]:
-    """Slices of queries whose patch samples stay under `CHUNK_ELEMENTS` elements each."""
-    step = max(1, CHUNK_ELEMENTS // max(1, per_query))
+def gather_context_attn(
+    keys: Tensor,
+    values: Tensor,
+    own: Tensor,
+    spatial_shapes: list[tuple[int, int]],
+    locations: Tensor,
+    score: Callable[[Tensor], Tensor],
+    block: int | None,
+) -> tuple[Tensor, Tensor]:
+    """The context-aware attention's logits and output from borderless gather rows.
+
+    The corners of every patch are computed once for all queries; the patch centre is
+    the value's sampling location, so its corners (with the attention folded into their
+    weights) sample the values in one more gather, without a second corner computation.
+
+    Args:
+        keys: (B · S · M, D) borderless key rows (`key_table`).
+        values: (B · S · M, D) borderless value rows.
+        own: (B, Q, M, K², D) each point's projected context.
+        spatial_shapes: (H_l, W_l) per level.
+        locations: (B, Q, M, L, P, 2) patch centres in [0, 1].
+        score: the K⁴ patch products (B, q, M, L·P, K⁴) → logits (B, q, M, L·P).
+        block: sampled key elements per block of queries, or None for all at once
+            (`query_chunks`).
+
+    Returns:
+        output (B, Q, M·D) and logits (B, Q, M, L·P).
+    """
+    batch, queries, heads, levels, points = locations.shape[:5]
+    k2 = own.shape[3]
+    patch = math.isqrt(k2)
+    rows, weights = patch_corners(locations, spatial_shapes, patch)  # (B, Q, M, L·P·K², 4)
+    per_query = batch * heads * levels * points * k2 * own.shape[-1]
+    logits = []
+    for part in query_chunks(queries, per_query, block):
+        sampled = gather_sum(keys, rows[:, part], weights[:, part])  # (B, q, M, L·P·K², D)
+        sampled = sampled.unflatten(3, (levels * points, k2))  # (B, q, M, L·P, K², D)
+        # bfloat16 key rows (`dense.bfloat16_products`) give bfloat16 samples
+        products = torch.einsum("bqmjxd,bqmyd->bqmjxy", sampled.to(own.dtype), own[:, part])
+        logits.append(score(products.flatten(-2)))
+    scores = logits[0] if len(logits) == 1 else torch.cat(logits, dim=1)  # (B, Q, M, L·P)
+    centre = (batch, queries, heads, levels * points, k2, 4)
+    centre_rows = rows.view(centre)[..., k2 // 2, :]  # (B, Q, M, L·P, 4)
+    centre_weights = weights.view(centre)[..., k2 // 2, :] * scores.softmax(-1)[..., None]
+    out = gather_sum(values, centre_rows.flatten(-2), centre_weights.flatten(-2))  # (B, Q, M, D)
+    return out.to(own.dtype).view(batch, queries, -1), scores
+
+
+ACCELERATOR_BLOCK = 1 << 27
+"""Sampled key elements per block of queries on accelerators (512 MB in float32): a bound
+on memory only; 800 points at TAPTRv3's shapes (37k elements each) take one block."""
+
+
+def sample_block(execution: Execution, like: Tensor) -> int | None:
+    """Sampled key elements per block of queries for ``like``'s device.
+
+    On CPUs the execution's ``sample_block`` (blocks that stay in the caches, or None);
+    elsewhere blocks exist only to bound memory (`ACCELERATOR_BLOCK`), each block being a
+    few more launches.
+    """
+    return execution.sample_block if like.device.type == "cpu" else ACCELERATOR_BLOCK
+
+
+def query_chunks(queries: int, per_query: int, block: int | None = CHUNK_ELEMENTS) -> list[slice]:
+    """Slices of queries whose patch samples stay under ``block`` elements each (None: one)."""
+    if block is None:
+        return [slice(0, queries)]
+    step = max(1, block // max(1, per_query))
     return [slice(start, start + step) for start in range(0, queries, step)]

@@ -10,7 +10,7 @@ AVX-512 kernels (oneDNN reports AVX-512 there; MKL's choice is not reported).
 are expected to run AVX-512 at about the same rate (not measured here). On 2026-12-05, with
 PyTorch 2.14.1 on an AMD EPYC, the two were within 8% on the encoder's FFN
 (``benchmarks/host_choices.py``): the gap depends on the build and the host, so the
-predictor times both once per host and keeps the faster (`taptr.model.cpu_choice`). The
+predictor times both once per host and keeps the faster (`taptr.runtime.cpu_choice`). The
 same sums in another order: results agree with ``F.linear`` up to float rounding.
 
 oneDNN's inner product is reached through ``torch.ops.mkldnn._linear_pointwise``, the op

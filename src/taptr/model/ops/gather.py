@@ -24,6 +24,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from taptr.model.ops.constants import kept
 from taptr.model.ops.dense import apply_linear, bfloat16_mode, linear
 
 CHUNK_ELEMENTS = 1 << 22
@@ -61,6 +62,7 @@ def projected_table(
     *,
     border: bool = True,
     onednn: bool = False,
+    bfloat16_rows: bool = True,
 ) -> Tensor:
     """``projection(memory)`` split into heads as gather rows, with or without the border.
 
@@ -78,6 +80,8 @@ def projected_table(
             table is the projection's rows, (B · S · M, C / M).
         onednn: run the product as a oneDNN inner product where that applies
             (`taptr.model.ops.dense`).
+        bfloat16_rows: without the border, inside `bfloat16_products`, keep the rows in
+            bfloat16 (keys, whose samples feed scores); False gives float32 rows.
 
     Returns:
         (B · Σ(H_l + 3)(W_l + 3) · M, C / M), or (B · S · M, C / M) without the border.
@@ -91,7 +95,8 @@ def projected_table(
             return projection(memory).reshape(-1, channels // heads)
         if onednn:
             # inside bfloat16 products the rows stay bfloat16: half the bytes to gather
-            rows = apply_linear(projection, memory, onednn=True, keep_type=bfloat16_mode())
+            keep = bfloat16_rows and bfloat16_mode()
+            rows = apply_linear(projection, memory, onednn=True, keep_type=keep)
             return rows.reshape(-1, channels // heads)
         flat = memory.reshape(-1, channels)  # (B·S, C)
         rows = torch.addmm(projection.bias, flat, projection.weight.t())
@@ -100,16 +105,14 @@ def projected_table(
         return padded_table(projection(memory).view(batch, tokens, heads, -1), spatial_shapes)
     product = linear(memory, projection.weight, None, onednn=onednn)  # (B, S, C), no bias
     padded_sizes = [(h + 3) * (w + 3) for h, w in spatial_shapes]
-    table = memory.new_empty(batch, sum(padded_sizes), channels)
+    # one fill of the whole table, not four border strips per level: 16 launches fewer
+    # per table, for a pass over a few megabytes
+    table = memory.new_zeros(batch, sum(padded_sizes), channels)
     start, padded_start = 0, 0
     for (height, width), size in zip(spatial_shapes, padded_sizes, strict=True):
         level = table[:, padded_start : padded_start + size].view(
             batch, height + 3, width + 3, channels
         )
-        level[:, 0].zero_()
-        level[:, height + 1 :].zero_()
-        level[:, 1 : height + 1, 0].zero_()
-        level[:, 1 : height + 1, width + 1 :].zero_()
         interior = product[:, start : start + height * width].view(batch, height, width, channels)
         torch.add(interior, projection.bias, out=level[:, 1 : height + 1, 1 : width + 1])
         start, padded_start = start + height * width, padded_start + size
@@ -122,9 +125,13 @@ def interleaved_sizes(spatial_shapes: list[tuple[int, int]], points: int, like: 
     Elementwise ops between (..., L · P · 2) rows and this vector run along one contiguous
     axis, where broadcasting a (L, 1, 2) size over (..., L, P, 2) runs an inner loop of two.
     """
-    sizes = like.new_tensor([[w, h] for h, w in spatial_shapes])  # (L, 2)
     levels = len(spatial_shapes)
-    return sizes.view(levels, 1, 2).expand(levels, points, 2).reshape(-1)
+
+    def make() -> Tensor:
+        sizes = like.new_tensor([[w, h] for h, w in spatial_shapes])  # (L, 2)
+        return sizes.view(levels, 1, 2).expand(levels, points, 2).reshape(-1)
+
+    return kept(("interleaved sizes", tuple(spatial_shapes), points, like.device, like.dtype), make)
 
 
 def bilinear_corners(
@@ -170,31 +177,53 @@ def bilinear_corners(
         low = torch.minimum(corner.clamp_(min=0.0), last).to(index).view(locations.shape)
         gx, fx = gx * inside_low[..., 0], fx * inside_high[..., 0]
         gy, fy = gy * inside_low[..., 1], fy * inside_high[..., 1]
-    starts = [sum(level_rows[:i]) for i in range(levels)]
-    starts_t = torch.tensor(starts, device=locations.device, dtype=index).view(levels, 1)
-    lengths = torch.tensor(row_lengths, device=locations.device, dtype=index).view(levels, 1)
-    # table row of (image b, token s, head m) is (b·S_t + s)·M + m
-    image_head = torch.arange(batch, device=locations.device, dtype=index).view(batch, 1, 1, 1, 1)
-    image_head = image_head * (sum(level_rows) * heads) + torch.arange(
-        heads, device=locations.device, dtype=index
-    ).view(1, 1, heads, 1, 1)
-    top_left = image_head + (starts_t + low[..., 1] * lengths + low[..., 0]) * heads
+    device = locations.device
+    key = ("corners", tuple(spatial_shapes), border, batch, heads, device, index)
+    starts = [sum(level_rows[:i]) * heads for i in range(levels)]
+    # table row of (image b, token s, head m) is (b·S_t + s)·M + m: per level, the first
+    # row of each image and head, and the rows of one feature row (lengths · M)
+    line_rows = kept(
+        (*key, "lines"),
+        lambda: torch.tensor([n * heads for n in row_lengths], device=device, dtype=index).view(
+            levels, 1
+        ),
+    )
+    image_head = kept(
+        (*key, "base"), lambda: _first_rows(batch, heads, starts, level_rows, index, device)
+    )
+    top_left = image_head + low[..., 1] * line_rows + low[..., 0] * heads
     # corners are written into strided slices: stacking them costs several times more
     rows = top_left.new_empty(*top_left.shape, 4)  # (B, Q, M, L, P, 4)
     rows[..., 0] = top_left
     if border:  # the other corners are the next cell and row, inside the border
         torch.add(top_left, heads, out=rows[..., 1])
-        torch.add(top_left, lengths * heads, out=rows[..., 2])
+        torch.add(top_left, line_rows, out=rows[..., 2])
         torch.add(rows[..., 2], heads, out=rows[..., 3])
     else:  # clamped cells: a far corner outside the level repeats the near one (weight 0)
         right = (high[..., 0] - low[..., 0]) * heads
         torch.add(top_left, right, out=rows[..., 1])
-        below = image_head + (starts_t + high[..., 1] * lengths + low[..., 0]) * heads
+        below = image_head + high[..., 1] * line_rows + low[..., 0] * heads
         rows[..., 2] = below
         torch.add(below, right, out=rows[..., 3])
     weights = _corner_weights(fx, fy, gx, gy, scale)
     shape = (*locations.shape[:3], levels * points, 4)
     return rows.view(shape), weights.view(shape)
+
+
+def _first_rows(
+    batch: int,
+    heads: int,
+    starts: list[int],
+    level_rows: list[int],
+    index: torch.dtype,
+    device: torch.device,
+) -> Tensor:
+    """(B, 1, M, L, 1) table row of each image, head and level's first token."""
+    images = torch.arange(batch, device=device, dtype=index) * (sum(level_rows) * heads)
+    head = torch.arange(heads, device=device, dtype=index)
+    level = torch.tensor(starts, device=device, dtype=index)
+    rows = images.view(batch, 1, 1) + head.view(1, heads, 1) + level.view(1, 1, -1)
+    return rows.view(batch, 1, heads, len(starts), 1)
 
 
 def _corner_weights(fx: Tensor, fy: Tensor, gx: Tensor, gy: Tensor, scale: Tensor | None) -> Tensor:
@@ -270,33 +299,43 @@ def gather_key_aware_attn(
     Returns:
         output (B, Q, M·D) and pre-softmax logits (B, Q, M, L, P).
     """
-    batch, num_queries, heads, channels = queries.shape
-    levels, points = locations.shape[3:5]
     rows, corner_weights = bilinear_corners(locations, spatial_shapes, border=border)
+    output, logits = key_aware_from_corners(queries, key_table, value_table, rows, corner_weights)
+    return output, logits.view(locations.shape[:-1])
+
+
+def key_aware_from_corners(
+    queries: Tensor, key_table: Tensor, value_table: Tensor, rows: Tensor, corner_weights: Tensor
+) -> tuple[Tensor, Tensor]:
+    """`gather_key_aware_attn` from the locations' corners (`bilinear_corners`).
+
+    Args:
+        queries: (B, Q, M, D) projected queries.
+        key_table: gather rows of the keys, (R, D).
+        value_table: gather rows of the values, (R, D).
+        rows: (B, Q, M, L·P, 4) corner rows into both tables.
+        corner_weights: (B, Q, M, L·P, 4) their bilinear weights.
+
+    Returns:
+        output (B, Q, M·D) and pre-softmax logits (B, Q, M, L·P).
+    """
+    batch, num_queries, heads, channels = queries.shape
+    samples = rows.shape[3]
     # sampled keys are (B, Q, M, L·P, D): bound their memory by taking queries in chunks
-    chunk = max(1, CHUNK_ELEMENTS // (batch * heads * levels * points * channels))
+    chunk = max(1, CHUNK_ELEMENTS // (batch * heads * samples * channels))
     # a bfloat16 table (`taptr.model.frame_tables`) gives bfloat16 samples: the scores,
     # their softmax and the output are float32 all the same
-    logits = (
-        torch.cat(
-            [
-                torch.einsum(
-                    "bqmd,bqmjd->bqmj",
-                    queries[:, start : start + chunk],
-                    gather_sum(
-                        key_table,
-                        rows[:, start : start + chunk],
-                        corner_weights[:, start : start + chunk],
-                    ).to(queries.dtype),
-                )
-                for start in range(0, num_queries, chunk)
-            ],
-            dim=1,
+    parts = [
+        torch.einsum(
+            "bqmd,bqmjd->bqmj",
+            queries[:, start : start + chunk],
+            gather_sum(
+                key_table, rows[:, start : start + chunk], corner_weights[:, start : start + chunk]
+            ).to(queries.dtype),
         )
-        / channels**0.5
-    )  # (B, Q, M, L·P)
+        for start in range(0, num_queries, chunk)
+    ]
+    logits = (parts[0] if len(parts) == 1 else torch.cat(parts, dim=1)) / channels**0.5
     combined = corner_weights * logits.softmax(-1).unsqueeze(-1)  # (B, Q, M, L·P, 4)
     out = gather_sum(value_table, rows.flatten(-2), combined.flatten(-2)).to(queries.dtype)
-    return out.view(batch, num_queries, heads * channels), logits.view(
-        batch, num_queries, heads, levels, points
-    )
+    return out.view(batch, num_queries, heads * channels), logits

@@ -32,7 +32,14 @@ from taptr.model.attention import (
 from taptr.model.execution import Execution
 from taptr.model.layers import MLP
 from taptr.model.ops import deform_attn, value_table
-from taptr.model.ops.context_patches import key_table, query_chunks, sample_key_patches
+from taptr.model.ops.context_patches import (
+    gather_context_attn,
+    key_table,
+    query_chunks,
+    sample_block,
+    sample_key_patches,
+)
+from taptr.model.ops.gather import projected_table
 
 
 class ContextAwareDeformableAttention(KeyAwareDeformableAttention):
@@ -77,19 +84,58 @@ class ContextAwareDeformableAttention(KeyAwareDeformableAttention):
         m, lv, p = self.num_heads, self.num_levels, self.num_points
         offsets = project(self.sampling_offsets, query, execution).view(batch, queries, m, lv, p, 2)
         locations = sampling_locations(reference, offsets, spatial_shapes)
-        logits = self.logits(locations, memory, spatial_shapes, execution, context)
-        weights = logits.softmax(-1).view(batch, queries, m, lv, p)
-        values = value_table(
-            execution.kernel,
+        if execution.kernel == "gather":
+            output, logits = self._gathered(locations, memory, spatial_shapes, execution, context)
+        else:
+            logits = self.logits(locations, memory, spatial_shapes, execution, context)
+            values = value_table(
+                execution.kernel,
+                memory,
+                self.value_proj,
+                spatial_shapes,
+                m,
+                onednn=execution.onednn_linear,
+            )
+            weights = logits.softmax(-1).view(batch, queries, m, lv, p)
+            output = deform_attn(execution.kernel, values, spatial_shapes, locations, weights)
+        return DeformableOutput(
+            project(self.output_proj, output, execution), logits.view(offsets.shape[:-1]), offsets
+        )
+
+    def _own(self, context: Tensor, execution: Execution) -> Tensor:
+        """Step 2: the points' contexts (B, Q, K, K, C) projected, (B, Q, M, K², D) per head."""
+        batch, queries = context.shape[:2]
+        own = project(self.query_proj, context.flatten(2, 3), execution)  # (B, Q, K², C)
+        return own.view(batch, queries, self.patch**2, self.num_heads, -1).transpose(2, 3)
+
+    def _gathered(
+        self,
+        locations: Tensor,
+        memory: Tensor,
+        spatial_shapes: list[tuple[int, int]],
+        execution: Execution,
+        context: Tensor,
+    ) -> tuple[Tensor, Tensor]:
+        """Output (B, Q, C) and logits (B, Q, M, L·P) by the ``gather`` kernel's row gathers."""
+        heads, onednn = self.num_heads, execution.onednn_linear
+        keys = key_table("gather", memory, self.key_proj, spatial_shapes, heads, onednn=onednn)
+        values = projected_table(
             memory,
             self.value_proj,
             spatial_shapes,
-            m,
-            onednn=execution.onednn_linear,
+            heads,
+            border=False,
+            onednn=onednn,
+            bfloat16_rows=False,
         )
-        output = deform_attn(execution.kernel, values, spatial_shapes, locations, weights)
-        return DeformableOutput(
-            project(self.output_proj, output, execution), logits.view(weights.shape), offsets
+        return gather_context_attn(
+            keys,
+            values,
+            self._own(context, execution),
+            spatial_shapes,
+            locations,
+            lambda products: self.similarity(products, execution).squeeze(-1),
+            sample_block(execution, memory),
         )
 
     def logits(
@@ -115,8 +161,7 @@ class ContextAwareDeformableAttention(KeyAwareDeformableAttention):
             heads,
             onednn=execution.onednn_linear,
         )
-        own = project(self.query_proj, context.flatten(2, 3), execution)  # (B, Q, K², C)
-        own = own.view(batch, queries, k2, heads, -1).transpose(2, 3)  # (B, Q, M, K², D)
+        own = self._own(context, execution)  # (B, Q, M, K², D)
         per_query = batch * heads * levels * points * k2 * own.shape[-1]
         logits = []
         for part in query_chunks(queries, per_query):

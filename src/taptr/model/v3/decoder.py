@@ -36,11 +36,15 @@ class HeldFrames(NamedTuple):
         content: (B, N, H, C) each point's content on the held frames, oldest first.
         distances: (H,) frames from each held frame to the decoded one.
         weights: (B, N, H) float visibility weights, or bool allowed frames (ablation).
+        outside: (H,) bool, slots that hold no frame (a static step reads the whole
+            buffer: `taptr.model.v3.per_frame.held_frames`), left out of the softmax; or
+            None when every slot is held.
     """
 
     content: Tensor
     distances: Tensor
     weights: Tensor
+    outside: Tensor | None = None
 
 
 class V3DecoderLayer(DecoderLayer):
@@ -133,6 +137,7 @@ class V3DecoderLayer(DecoderLayer):
             held.distances,
             held.weights.flatten(0, 1),
             execution,
+            held.outside,
         )
         return self.norm_long_temporal(flat + attended).view(batch, frames, points, channels)
 
@@ -161,6 +166,7 @@ class V3Decoder(Decoder):
         execution: Execution,
         held: HeldFrames,
         context: Tensor | None,
+        all_tracked: bool | None = None,
     ) -> DecoderOutput:
         """Decodes one frame.
 
@@ -174,8 +180,16 @@ class V3Decoder(Decoder):
             execution: how to run.
             held: the points' held frames (the same for every layer).
             context: (B, N, K, K, C) initial contexts, or None (TAPTRv2's cross-attention).
+            all_tracked: whether every point is tracked, known to the caller without
+                asking the device; then the step waits for nothing: the points attend to
+                each other unmasked, or (not all tracked) with the N × N mask instead of
+                grouping the tracked ones. None reads ``tracking``.
         """
-        masks = attention_masks(tracking, execution.grouped_point_attention)
+        if all_tracked is None:
+            masks = attention_masks(tracking, execution.grouped_point_attention)
+        else:
+            grouped = execution.grouped_point_attention and all_tracked
+            masks = attention_masks(tracking, grouped, all_tracked)
         return self.run_layers(
             content,
             positions,

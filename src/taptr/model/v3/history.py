@@ -57,6 +57,26 @@ class History:
         """(H,) int64 video frame of each held frame."""
         return torch.arange(self.first, self.first + self.length, device=self._content.device)
 
+    @property
+    def slot_content(self) -> Tensor:
+        """(B, N, capacity, C) the whole buffer, slots in order (see `slot_frames`)."""
+        return self._content
+
+    @property
+    def slot_visibility_logits(self) -> Tensor:
+        """(B, N, capacity) float32 logits of the whole buffer."""
+        return self._visibility
+
+    def slot_frames(self) -> Tensor:
+        """(capacity,) int64 frame each buffer slot would hold, counted from the oldest held.
+
+        Slots before the oldest held frame count back from it, slots after the newest
+        count on: only those in [``first``, ``first + length``) hold frames.
+        """
+        origin = self.first - self._start
+        capacity = self._content.shape[2]
+        return torch.arange(origin, origin + capacity, device=self._content.device)
+
     def open_frame(self, frame: int, content: Tensor, visibility_logit: Tensor) -> None:
         """Holds ``frame`` (the next one), starting at the points' initial values.
 
@@ -136,9 +156,11 @@ class History:
             self._visibility[:, :, : self.length] = self.visibility_logits.clone()
             self._start = 0
             return
+        # doubling with the frames actually held: a limit longer than the video costs
+        # nothing; with a limit the buffer stops at twice it, where sliding back pays
         wanted = max(2 * self.length, 8)
         if self.limit:
-            wanted = max(2 * self.limit, 8)
+            wanted = min(wanted, max(2 * self.limit, 8))
         batch, points, _, channels = self._content.shape
         content = self._content.new_zeros(batch, points, wanted, channels)
         visibility = self._visibility.new_zeros(batch, points, wanted)

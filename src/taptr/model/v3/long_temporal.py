@@ -23,6 +23,8 @@ projecting every held frame (the ``fast`` execution).
 
 from __future__ import annotations
 
+import functools
+
 import torch
 from torch import Tensor, nn
 
@@ -60,8 +62,13 @@ def masked_scores(scores: Tensor, weights: Tensor) -> Tensor:
     return scores.masked_fill(~allowed, float("-inf"))
 
 
-def shares(scores: Tensor, weights: Tensor) -> Tensor:
-    """Steps 2-3: each held frame's share of the output, scores (..., H) → (..., H)."""
+def shares(scores: Tensor, weights: Tensor, outside: Tensor | None = None) -> Tensor:
+    """Steps 2-3: each held frame's share of the output, scores (..., H) → (..., H).
+
+    ``outside`` (H,) marks slots holding no frame: they take no share of the softmax.
+    """
+    if outside is not None:
+        scores = scores.masked_fill(outside, float("-inf"))
     return weigh_attention(masked_scores(scores, weights).softmax(-1), weights)
 
 
@@ -88,6 +95,7 @@ class LongTemporalAttention(nn.Module):
         distances: Tensor,
         weights: Tensor,
         execution: Execution,
+        outside: Tensor | None = None,
     ) -> Tensor:
         """Attends from each query to its held frames.
 
@@ -99,11 +107,13 @@ class LongTemporalAttention(nn.Module):
                 or bool: the frames each query may attend to (the ablation).
             execution: how to run: ``history_products`` takes
                 `taptr.model.ops.history_attention`'s formulation.
+            outside: (H,) bool slots that hold no frame, or None (`shares`).
 
         Returns:
             (Q, C), after the output projection.
         """
         turns = self.rotary.turns(distances, history.dtype)
+        share_of = functools.partial(shares, outside=outside)
         if execution.history_products:
             return history_attention(
                 self.attention,
@@ -112,7 +122,7 @@ class LongTemporalAttention(nn.Module):
                 weights,
                 execution,
                 lambda held: rotate(held, *turns),
-                shares,
+                share_of,
             )
         keys = rotate(history, *turns)
         heads = self.attention.num_heads
@@ -124,6 +134,6 @@ class LongTemporalAttention(nn.Module):
         k = linear(keys, w_k, b_k, onednn=onednn).view(queries, frames, heads, -1)  # (Q, H, M, D)
         v = linear(history, w_v, b_v, onednn=onednn).view(queries, frames, heads, -1)
         scores = torch.einsum("qmd,qhmd->qmh", q, k) / q.shape[-1] ** 0.5
-        attention = shares(scores, weights[:, None])  # (Q, M, H)
+        attention = share_of(scores, weights[:, None])  # (Q, M, H)
         out = torch.einsum("qmh,qhmd->qmd", attention, v).reshape(queries, channels)
         return apply_linear(self.attention.out_proj, out, onednn=onednn)

@@ -29,10 +29,10 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from taptr.geometry import inverse_sigmoid
+from taptr.model.ops.constants import kept
 from taptr.model.sliding_window import FrameSource
 from taptr.model.taptr import FrameFeatures
 from taptr.model.trajectory import QuerySet, TrackOutput
@@ -70,7 +70,13 @@ class FrameState:
         positions: per layer, the (B, N, 4) logits carried to the next frame.
         updated_positions: per layer, the (B, N, 4) position-update logits carried.
         history: the points' held frames.
+        start_frames: the points' distinct start frames, in order, on the host: which
+            frames start points, whether any point is past its start and whether all
+            are tracked are decided without asking the device (a step that waits for
+            nothing can be captured and replayed).
         next_frame: the frame to decode next.
+        static_shapes: the decoder reads the history's whole buffer (`held_frames`), so
+            that its shapes stay the same from frame to frame (compiled or captured steps).
     """
 
     queries: QuerySet
@@ -80,7 +86,14 @@ class FrameState:
     positions: list[Tensor]
     updated_positions: list[Tensor]
     history: History
+    start_frames: tuple[int, ...] = ()
     next_frame: int = 0
+    static_shapes: bool = False
+
+
+def distinct_starts(queries: QuerySet) -> tuple[int, ...]:
+    """The distinct start frames of the queries, in order (read once, when points change)."""
+    return tuple(torch.unique(queries.start_frames).tolist())
 
 
 def query_logits(queries: QuerySet, dtype: torch.dtype) -> Tensor:
@@ -96,15 +109,20 @@ def initial_visibility(model: TAPTRv3, queries: QuerySet, frame: int) -> Tensor:
     whatever the start label; without (the ablation): the start label on every frame.
     Both as inverse_sigmoid(one-hot), ±6.9078.
     """
-    if model.visibility_weights:
-        label = torch.where(queries.start_frames == frame, 1, 2)
-    else:
-        label = torch.where(queries.start_visible, 1, 2)
-    return inverse_sigmoid(F.one_hot(label, 3).float())
+    visible = queries.start_frames == frame if model.visibility_weights else queries.start_visible
+    table = kept(  # (2, 3): the logits of "visible" and of "occluded"
+        ("initial visibility", visible.device),
+        lambda: inverse_sigmoid(torch.eye(3, device=visible.device)[1:]),
+    )
+    return torch.where(visible[..., None], table[0], table[1])
 
 
 def start_state(
-    model: TAPTRv3, queries: QuerySet, dtype: torch.dtype, history_frames: int | None = None
+    model: TAPTRv3,
+    queries: QuerySet,
+    dtype: torch.dtype,
+    history_frames: int | None = None,
+    static_shapes: bool = False,
 ) -> FrameState:
     """The state before the first frame.
 
@@ -113,6 +131,7 @@ def start_state(
         queries: the points, in model units.
         dtype: floating dtype of positions and content.
         history_frames: the most frames held per point (0: all); default the model's.
+        static_shapes: `FrameState.static_shapes`.
     """
     batch, points = queries.start_frames.shape
     channels = model.content_channels
@@ -130,6 +149,8 @@ def start_state(
         positions=[logits] * model.num_layers,
         updated_positions=[logits] * model.num_layers,
         history=history,
+        start_frames=distinct_starts(queries),
+        static_shapes=static_shapes,
     )
 
 
@@ -152,6 +173,7 @@ def add_points(model: TAPTRv3, state: FrameState, queries: QuerySet) -> None:
         torch.cat(p, 1) for p in zip(state.updated_positions, fresh.updated_positions, strict=True)
     ]
     state.history.add_points(queries.start_frames.shape[1])
+    state.start_frames = tuple(sorted({*state.start_frames, *fresh.start_frames}))
 
 
 def keep_points(state: FrameState, keep: Tensor) -> None:
@@ -164,13 +186,12 @@ def keep_points(state: FrameState, keep: Tensor) -> None:
     state.positions = [p[:, keep] for p in state.positions]
     state.updated_positions = [p[:, keep] for p in state.updated_positions]
     state.history.keep_points(keep)
+    state.start_frames = distinct_starts(state.queries)
 
 
 def start_points(model: TAPTRv3, state: FrameState, features: FrameFeatures, frame: int) -> None:
     """Step 2: content and context of the points starting on ``frame``, (B, 1, S, C) memory."""
     new = (~state.initialised) & (state.queries.start_frames == frame)
-    if not bool(new.any()):
-        return
     memory, spatial_shapes = features
     content, context = model.point_queries(memory[:, 0], spatial_shapes, state.queries.positions)
     state.initial_content = torch.where(new[..., None], content, state.initial_content)
@@ -198,25 +219,16 @@ def decode_frame(model: TAPTRv3, state: FrameState, frames: FrameSource) -> Fram
     unwritten = initial_visibility(model, state.queries, frame)
     state.history.open_frame(frame, state.initial_content, unwritten[..., 1])
     features = None
-    if bool((starts == frame).any()):
+    if frame in state.start_frames:
         features = frames(frame, frame)
         start_points(model, state, features, frame)
     update = starts < frame  # (B, N)
-    if not bool(update.any()):
+    if not state.start_frames or state.start_frames[0] >= frame:  # no point past its start
         return _carried(model, state, frame, unwritten)
     if features is None:
         features = frames(frame, frame)
     memory, spatial_shapes = features
-    held = HeldFrames(
-        state.history.content,
-        frame - state.history.frames(),
-        frame_weights(
-            state.history.frames(),
-            starts,
-            state.history.visibility_logits,
-            model.visibility_weights,
-        ),
-    )
+    held = held_frames(model, state, frame)
     decoded = model.decode_frame(
         memory[:, 0],
         spatial_shapes,
@@ -226,6 +238,7 @@ def decode_frame(model: TAPTRv3, state: FrameState, frames: FrameSource) -> Fram
         update[:, None],
         held,
         state.context,
+        all_tracked=state.start_frames[-1] <= frame,
     )
     step = update[..., None]
     state.positions = [
@@ -242,6 +255,29 @@ def decode_frame(model: TAPTRv3, state: FrameState, frames: FrameSource) -> Fram
     return FrameOutput(
         frame, torch.stack(state.positions), visibility, torch.stack(state.updated_positions)
     )
+
+
+def held_frames(model: TAPTRv3, state: FrameState, frame: int) -> HeldFrames:
+    """What the long-temporal attention reads on ``frame``: the held frames, or the buffer.
+
+    With ``state.static_shapes`` every slot of the history's buffer is read, those that
+    hold no frame left out of the softmax (`HeldFrames.outside`) and weighted zero: the
+    shapes then change only when the buffer grows (by doubling), so a compiled or
+    captured step is reused from frame to frame. The result is the same up to float
+    rounding.
+    """
+    history, starts = state.history, state.queries.start_frames
+    if not state.static_shapes:
+        frames = history.frames()  # (H,)
+        weights = frame_weights(frames, starts, history.visibility_logits, model.visibility_weights)
+        return HeldFrames(history.content, frame - frames, weights)
+    frames = history.slot_frames()  # (capacity,)
+    weights = frame_weights(
+        frames, starts, history.slot_visibility_logits, model.visibility_weights
+    )
+    outside = (frames < history.first) | (frames > frame)  # (capacity,)
+    weights = weights & ~outside if weights.dtype == torch.bool else weights.masked_fill(outside, 0)
+    return HeldFrames(history.slot_content, frame - frames, weights, outside)
 
 
 def _carried(model: TAPTRv3, state: FrameState, frame: int, unwritten: Tensor) -> FrameOutput:
@@ -273,6 +309,7 @@ def run_frames(
     dtype: torch.dtype,
     on_frame: Callable[[], object] | None = None,
     history_frames: int | None = None,
+    static_shapes: bool = False,
 ) -> TrackOutput:
     """Tracks the queries through a whole video, frame by frame.
 
@@ -284,8 +321,9 @@ def run_frames(
         dtype: floating dtype of the positions and content.
         on_frame: called after each frame (progress reporting).
         history_frames: the most frames held per point (0: all); default the model's.
+        static_shapes: `FrameState.static_shapes`.
     """
-    state = start_state(model, queries, dtype, history_frames)
+    state = start_state(model, queries, dtype, history_frames, static_shapes)
     outputs = []
     for _ in range(num_frames):
         outputs.append(decode_frame(model, state, frames))

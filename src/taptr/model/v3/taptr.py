@@ -97,6 +97,7 @@ class TAPTRv3(TAPTR):
         update: Tensor,
         held: HeldFrames,
         context: Tensor | None,
+        all_tracked: bool | None = None,
     ) -> DecoderOutput:
         """Runs the decoder on one frame.
 
@@ -109,6 +110,8 @@ class TAPTRv3(TAPTR):
             update: (B, 1, N) bool, tracking points after their start frame.
             held: the points' held frames.
             context: (B, N, K, K, C) initial contexts, or None.
+            all_tracked: every point is tracked (known without asking the device), or
+                None to read ``tracking`` (`taptr.model.v3.decoder.V3Decoder`).
         """
         assert isinstance(self.decoder, V3Decoder)
         return self.decoder(
@@ -121,4 +124,5 @@ class TAPTRv3(TAPTR):
             self.execution,
             held,
             context,
+            all_tracked,
         )
