@@ -50,3 +50,16 @@ def test_taptrv3_decoder_step_compiles_as_one_graph(backend):
             torch.testing.assert_close(
                 got.visibility_logits, expected.visibility_logits, atol=1e-5, rtol=0
             )
+
+
+def test_a_compiled_decoder_gets_the_static_step():
+    """A TAPTRv3 whose decoder was compiled reads the whole history buffer, as it must."""
+    from taptr.export.compile import compile_model
+
+    model = compile_model(build_model("tiny-v3").eval(), backend="eager")
+    queries = QuerySet(
+        torch.zeros(1, 2, dtype=torch.long), torch.rand(1, 2, 2), torch.ones(1, 2, dtype=torch.bool)
+    )
+    assert per_frame.start_state(model, queries, torch.float32).static_shapes
+    plain = build_model("tiny-v3").eval()
+    assert not per_frame.start_state(plain, queries, torch.float32).static_shapes

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from taptr.geometry import inverse_sigmoid
 from taptr.model.ops.constants import kept
@@ -91,6 +91,14 @@ class FrameState:
     static_shapes: bool = False
 
 
+def compiled(module: nn.Module) -> bool:
+    """Whether ``module`` runs through ``torch.compile`` (``module.compile()`` or wrapped)."""
+    # torch.compile(module) wraps it (the original as ``_orig_mod``); module.compile()
+    # sets ``_compiled_call_impl``; looking for either imports nothing of dynamo
+    wrapped = getattr(module, "_orig_mod", None) is not None
+    return wrapped or getattr(module, "_compiled_call_impl", None) is not None
+
+
 def distinct_starts(queries: QuerySet) -> tuple[int, ...]:
     """The distinct start frames of the queries, in order (read once, when points change)."""
     return tuple(torch.unique(queries.start_frames).tolist())
@@ -131,7 +139,9 @@ def start_state(
         queries: the points, in model units.
         dtype: floating dtype of positions and content.
         history_frames: the most frames held per point (0: all); default the model's.
-        static_shapes: `FrameState.static_shapes`.
+        static_shapes: `FrameState.static_shapes`; always on when the decoder is
+            compiled (``nn.Module.compile``, `taptr.export.compile_model`), which would
+            otherwise trace it again for every history length.
     """
     batch, points = queries.start_frames.shape
     channels = model.content_channels
@@ -150,7 +160,7 @@ def start_state(
         updated_positions=[logits] * model.num_layers,
         history=history,
         start_frames=distinct_starts(queries),
-        static_shapes=static_shapes,
+        static_shapes=static_shapes or compiled(model.decoder),
     )
 
 
