@@ -260,10 +260,7 @@ def gather_context_attn(
     logits = []
     for part in query_chunks(queries, per_query, block):
         sampled = gather_sum(keys, rows[:, part], weights[:, part])  # (B, q, M, L·P·K², D)
-        sampled = sampled.unflatten(3, (levels * points, k2))  # (B, q, M, L·P, K², D)
-        # bfloat16 key rows (`dense.bfloat16_products`) give bfloat16 samples
-        products = torch.einsum("bqmjxd,bqmyd->bqmjxy", sampled.to(own.dtype), own[:, part])
-        logits.append(score(products.flatten(-2)))
+        logits.append(score(_patch_products(sampled, own[:, part], levels * points)))
     scores = logits[0] if len(logits) == 1 else torch.cat(logits, dim=1)  # (B, Q, M, L·P)
     centre = (batch, queries, heads, levels * points, k2, 4)
     centre_rows = rows.view(centre)[..., k2 // 2, :]  # (B, Q, M, L·P, 4)
@@ -285,6 +282,29 @@ def sample_block(execution: Execution, like: Tensor) -> int | None:
     few more launches.
     """
     return execution.sample_block if like.device.type == "cpu" else ACCELERATOR_BLOCK
+
+
+def _patch_products(sampled: Tensor, own: Tensor, locations: int) -> Tensor:
+    """All K⁴ dot products of each sampled key patch with the point's own context.
+
+    Args:
+        sampled: (B, Q, M, J·K², D) key samples, J locations of K² patch points (x).
+        own: (B, Q, M, K², D) the projected context (y).
+        locations: J.
+
+    Returns:
+        (B, Q, M, J, K²·K²), products in (x, y) order.
+    """
+    batch, queries, heads, _, channels = own.shape
+    k2 = own.shape[3]
+    flat_own = own.reshape(-1, k2, channels)  # (B·Q·M, K², D)
+    # bfloat16 key rows (`dense.bfloat16_products`) give bfloat16 samples
+    keys = sampled.to(own.dtype).view(flat_own.shape[0], -1, channels)  # (B·Q·M, J·K², D)
+    # (K² × D) by (D × J·K²) products run 1.6× faster than (J·K² × D) by (D × K²) ones
+    # (a 9-column result) with the reordering copy included (2-core AMD EPYC)
+    products = torch.bmm(flat_own, keys.transpose(1, 2))  # (B·Q·M, K²_y, J·K²_x)
+    products = products.view(batch, queries, heads, k2, locations, k2).permute(0, 1, 2, 4, 5, 3)
+    return products.reshape(batch, queries, heads, locations, k2 * k2)
 
 
 def query_chunks(queries: int, per_query: int, block: int | None = CHUNK_ELEMENTS) -> list[slice]:
