@@ -66,3 +66,16 @@ def test_taptrv3_step_waits_for_nothing_with_points_still_to_start():
                 model, queries, 5, source, torch.float32, lambda: marks.append(counter.syncs)
             )
     assert marks[-1] - marks[0] == 0  # every frame after the first
+
+
+def test_bench_count_ops_prints_both_settings(capsys):
+    from taptr.cli.main import main
+
+    assert (
+        main(["bench", "--count-ops", "--preset", "tiny-v3", "--size", "64", "64", "--points", "8"])
+        == 0
+    )
+    lines = capsys.readouterr().out.splitlines()
+    rows = [line.split() for line in lines if line.startswith("tiny-v3")]
+    assert [row[3] for row in rows] == ["off", "on"]
+    assert all(float(row[5]) == 0 for row in rows)  # no host syncs either way

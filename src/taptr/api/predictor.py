@@ -69,14 +69,13 @@ def autocast_type(name: str) -> torch.dtype | None:
     return None if name == "float32" else getattr(torch, name)
 
 
-def precision_context(
-    device_type: str, autocast: torch.dtype | None
-) -> contextlib.AbstractContextManager[object]:
+@contextlib.contextmanager
+def precision_context(device_type: str, autocast: torch.dtype | None) -> Iterator[None]:
     """The context a model runs in for an ``autocast`` type (None: float32 as it is).
 
     ``torch.autocast`` on accelerators; on the CPU, bfloat16 is oneDNN bfloat16 products
     (`bfloat16_products`, with the trunk stored by `TAPTR.bfloat16_trunk`), and denormal
-    floats are flushed to zero (`taptr.runtime.denormals`).
+    floats are flushed to zero (`taptr.runtime.denormals`). Entered when the block starts.
     """
     if autocast is None:
         products: contextlib.AbstractContextManager[object] = contextlib.nullcontext()
@@ -84,16 +83,7 @@ def precision_context(
         products = bfloat16_products()
     else:
         products = torch.autocast(device_type, dtype=autocast)
-    return _both(flushed_denormals(device_type), products)
-
-
-@contextlib.contextmanager
-def _both(
-    first: contextlib.AbstractContextManager[object],
-    second: contextlib.AbstractContextManager[object],
-) -> Iterator[None]:
-    """Enters two contexts when the block starts (not when this is called)."""
-    with first, second:
+    with flushed_denormals(device_type), products:
         yield
 
 

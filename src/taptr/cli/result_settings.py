@@ -52,7 +52,7 @@ def track_settings(
         "model": predictor.source,
         "model_sha256": _file_digest(predictor.checkpoint_path or predictor.source),
         "visibility_threshold": predictor.visibility_threshold,
-        "queries": _query_settings(args, listed),
+        "queries": query_settings(args, listed),
         "input_size": list(predictor.input_size),
         "context_points": predictor.context_points,
         "support_points": predictor.support_points,
@@ -86,7 +86,8 @@ def made_with(folder: Path, settings: dict[str, Any]) -> bool:
     return recorded == json.loads(json.dumps(settings))
 
 
-def _query_settings(args: argparse.Namespace, listed: np.ndarray | None) -> dict[str, Any]:
+def query_settings(args: argparse.Namespace, listed: np.ndarray | None) -> dict[str, Any]:
+    """The ``queries`` entry of `track_settings` (``taptr track-corpus``: one per video)."""
     if listed is not None:
         points = np.ascontiguousarray(listed, dtype=np.float32)
         return {"points": len(points), "sha256": hashlib.sha256(points.tobytes()).hexdigest()}
@@ -113,13 +114,7 @@ def _file_digest(path: str | os.PathLike[str] | None) -> str | None:
 
 @functools.lru_cache(maxsize=16)
 def _digest(path: str, size: int, mtime_ns: int) -> str:
-    digest = hashlib.sha256()
-    with Path(path).open("rb") as stream:
-        for block in iter(lambda: stream.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
+    """`taptr.hub.file_sha256`, remembered by path, size and modification time."""
+    from taptr.hub import file_sha256
 
-
-def query_settings(args: argparse.Namespace, listed: np.ndarray | None) -> dict[str, Any]:
-    """The ``queries`` entry of `track_settings` (``taptr track-corpus``: one per video)."""
-    return _query_settings(args, listed)
+    return file_sha256(path)

@@ -21,7 +21,7 @@ from torch import Tensor, nn
 
 from taptr.model.ops.constants import kept
 from taptr.model.ops.dense import apply_linear
-from taptr.model.ops.gather import CHUNK_ELEMENTS, gather_sum, projected_table
+from taptr.model.ops.gather import CHUNK_ELEMENTS, first_rows, gather_sum, projected_table
 from taptr.model.ops.ms_deform_attn import sample_each_level
 
 if TYPE_CHECKING:
@@ -130,10 +130,7 @@ def _patch_tables(
         return kept((*key, name), make)
 
     def base() -> Tensor:
-        images = torch.arange(batch, device=like.device, dtype=index) * (sum(level_rows) * heads)
-        head = torch.arange(heads, device=like.device, dtype=index)
-        level = torch.tensor(starts, device=like.device, dtype=index)
-        rows = images.view(batch, 1, 1) + head.view(1, heads, 1) + level.view(1, 1, levels)
+        rows = first_rows(batch, heads, starts, level_rows, index, like.device)  # (B, 1, M, L, 1)
         return rows.view(batch, 1, heads, levels, 1, 1, 1)
 
     line_rows = [w * heads for _, w in spatial_shapes]

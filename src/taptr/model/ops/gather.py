@@ -189,7 +189,7 @@ def bilinear_corners(
         ),
     )
     image_head = kept(
-        (*key, "base"), lambda: _first_rows(batch, heads, starts, level_rows, index, device)
+        (*key, "base"), lambda: first_rows(batch, heads, starts, level_rows, index, device)
     )
     top_left = image_head + low[..., 1] * line_rows + low[..., 0] * heads
     # corners are written into strided slices: stacking them costs several times more
@@ -210,7 +210,7 @@ def bilinear_corners(
     return rows.view(shape), weights.view(shape)
 
 
-def _first_rows(
+def first_rows(
     batch: int,
     heads: int,
     starts: list[int],
@@ -218,7 +218,11 @@ def _first_rows(
     index: torch.dtype,
     device: torch.device,
 ) -> Tensor:
-    """(B, 1, M, L, 1) table row of each image, head and level's first token."""
+    """(B, 1, M, L, 1) table row of each image, head and level's first token.
+
+    ``starts`` are each level's first row in an image's table (its first token times M),
+    ``level_rows`` the tokens of each level.
+    """
     images = torch.arange(batch, device=device, dtype=index) * (sum(level_rows) * heads)
     head = torch.arange(heads, device=device, dtype=index)
     level = torch.tensor(starts, device=device, dtype=index)
