@@ -9,7 +9,10 @@ For a session that is lent a GPU (one run, well under 8 minutes on an H100):
 - operations and host syncs per frame on the device (`taptr.runtime.op_count`);
 - TAPTRv2 (512 × 512) at 800 and 5,000 points through ``Predictor.track`` (its default
   choices), bfloat16 autocast;
-- the online tracker's latency per frame (TAPTRv3, 800 points).
+- TAPTRv3 through ``Predictor.track`` with its step captured (``capture="on"``, what
+  ``auto`` picks where the kept measurement says so) and not (``"off"``), float32 and
+  bfloat16 autocast, frames/s;
+- the online tracker's latency per frame (TAPTRv3, 800 points), captured and not.
 
 Each case runs once untimed first (kernel selection, compilation, graph capture). Weights
 are random: the outputs' agreement is checked on frame 1 only (later frames of a random
@@ -40,6 +43,7 @@ from taptr.model.build import build_model
 from taptr.model.sliding_window import QuerySet
 from taptr.model.taptr import normalize_frames
 from taptr.model.v3.per_frame import run_frames
+from taptr.runtime import step_capture
 from taptr.runtime.frames import EncodedFrames, PrecomputedFrames
 from taptr.runtime.op_count import count_frame_ops
 
@@ -118,10 +122,38 @@ def v3_cases(args: argparse.Namespace, device: torch.device) -> dict[str, object
     return results
 
 
-def online_latency(args: argparse.Namespace, device: torch.device) -> dict[str, float]:
+def online_latency(args: argparse.Namespace, device: torch.device) -> dict[str, object]:
+    """The online tracker's latency, its step captured and not."""
+    return {capture: _online(args, device, capture) for capture in ("off", "on")}
+
+
+def v3_predictor(args: argparse.Namespace, device: torch.device) -> dict[str, float]:
+    """TAPTRv3 through ``Predictor.track``, its step captured and not, frames/s."""
+    height, width = args.size
+    video = np.random.default_rng(0).integers(0, 256, (args.frames, height, width, 3), np.uint8)
+    xy = np.random.default_rng(2).uniform(0, [width - 1, height - 1], (args.points, 2))
+    queries = np.concatenate([np.zeros((args.points, 1)), xy], 1).astype(np.float32)
+    results = {}
+    for name, autocast in TYPES.items():
+        for capture in ("off", "on"):
+            torch.manual_seed(0)
+            predictor = Predictor(
+                build_model(args.preset).eval(),
+                device=device,
+                autocast=autocast,
+                capture=capture,
+                support_points="none",
+            )
+            seconds, _ = _timed(lambda p=predictor: p.track(video, queries), device)
+            results[f"{name}_capture_{capture}_fps"] = args.frames / seconds
+    return results
+
+
+def _online(args: argparse.Namespace, device: torch.device, capture: str) -> dict[str, float]:
     """Seconds from a frame's arrival to its step's return, TAPTRv3, per frame (median)."""
     torch.manual_seed(0)
-    predictor = Predictor(build_model(args.preset).eval(), device=device)
+    model = build_model(args.preset).eval()
+    predictor = Predictor(model, device=device, capture=capture, support_points="none")
     height, width = args.size
     frames = np.random.default_rng(0).integers(0, 256, (args.frames, height, width, 3), np.uint8)
     online = OnlineTracker(predictor)
@@ -172,10 +204,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = parser.parse_args(argv)
     device = torch.device(args.device)
+    step_capture.BACKEND = args.backend
     report = {
         "machine": machine(),
         "command": " ".join(["python", "benchmarks/gpu_lean_step.py", *(argv or sys.argv[1:])]),
         "taptrv3": v3_cases(args, device),
+        "taptrv3_predictor": v3_predictor(args, device),
         "online_taptrv3": online_latency(args, device),
         "taptrv2_predictor": v2_predictor(args, device),
     }

@@ -19,6 +19,10 @@ AUTOCAST_TYPES = ("float32", "bfloat16", "float16")
 """Names of the types a model can run in under autocast (`taptr.api.predictor.autocast_type`);
 float32 runs without autocast. Here, without torch, for the CLI's choices."""
 
+CAPTURE_CHOICES = ("auto", "on", "off")
+"""Whether TAPTRv3's per-frame step is captured and replayed (`taptr.runtime.step_capture`):
+``auto`` by measurement, ``on`` always, ``off`` never. Here, without torch, for the CLI."""
+
 
 @dataclass
 class TrackingSample:

@@ -13,6 +13,7 @@ engines hold no state of their own: everything lives in the stream's driver stat
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -165,20 +166,35 @@ class FrameStream:
     decoded: dict[int, tuple[Tensor, Tensor]] = field(default_factory=dict)
 
 
+StepFor = Callable[[int | None, int | None], per_frame.DecoderStep | None]
+"""Gives TAPTRv3's decoder step from a run's points and frames (None: not known yet)."""
+
+
 class FrameEngine:
     """The per-frame driver, for TAPTRv3.
 
     Attributes:
         history_frames: the most frames held per point (None: the model's).
+        step_for: gives the decoder step of a stream from its points and frames (None
+            when not known yet; `taptr.api.predictor.Predictor.decoder_step`), or None
+            for the model's own.
     """
 
-    def __init__(self, model: TAPTRv3, history_frames: int | None = None) -> None:
+    def __init__(
+        self,
+        model: TAPTRv3,
+        history_frames: int | None = None,
+        step_for: StepFor | None = None,
+    ) -> None:
         self.model = model
         self.history_frames = history_frames
+        self.step_for = step_for
 
     def start(self, queries: QuerySet, num_frames: int | None, dtype: torch.dtype) -> FrameStream:
         """The driver state of a new stream (its length does not matter)."""
-        return FrameStream(per_frame.start_state(self.model, queries, dtype, self.history_frames))
+        step = self.step_for(None, num_frames) if self.step_for else None
+        state = per_frame.start_state(self.model, queries, dtype, self.history_frames, step=step)
+        return FrameStream(state)
 
     def queries(self, state: FrameStream) -> QuerySet:
         """The points the state tracks."""
@@ -236,8 +252,12 @@ class FrameEngine:
             del state.decoded[frame]
 
 
-def engine_for(model: TAPTR, history_frames: int | None = None) -> StreamEngine:
-    """The engine of ``model``'s family (``history_frames``: TAPTRv3's history limit)."""
+def engine_for(
+    model: TAPTR,
+    history_frames: int | None = None,
+    step_for: StepFor | None = None,
+) -> StreamEngine:
+    """The engine of ``model``'s family (TAPTRv3's: its history limit and step, `FrameEngine`)."""
     if isinstance(model, TAPTRv3):
-        return FrameEngine(model, history_frames)
+        return FrameEngine(model, history_frames, step_for)
     return WindowEngine(model)

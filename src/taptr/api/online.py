@@ -110,7 +110,9 @@ class OnlineTracker:
     def __init__(self, predictor: Predictor) -> None:
         self.predictor = predictor
         self.model = predictor.model
-        self.engine: StreamEngine = engine_for(predictor.model, predictor.history_frames)
+        self.engine: StreamEngine = engine_for(
+            predictor.model, predictor.history_frames, predictor.decoder_step
+        )
 
     def start(
         self, num_frames: int | None = None, frame_size: tuple[int, int] | None = None

@@ -43,7 +43,13 @@ from taptr.runtime.drivers import run_tracker, step_count
 from taptr.runtime.encode_choice import choose_frames_per_call
 from taptr.runtime.frames import EncodedFrames
 from taptr.runtime.kernel_choice import choose_kernel
-from taptr.types import AUTOCAST_TYPES, TrackingResult
+from taptr.runtime.step_capture import (
+    StepCapture,
+    capture_key,
+    pad_points,
+    points_bucket,
+)
+from taptr.types import AUTOCAST_TYPES, CAPTURE_CHOICES, TrackingResult
 
 logger = logging.getLogger(__name__)
 
@@ -134,6 +140,12 @@ class Predictor:
             per point, the current one included (0: the whole video; memory grows by
             C · 4 bytes per point and frame, 1 KiB for the released models). Default: the
             model's (0).
+        capture: TAPTRv3: whether its per-frame decoder step is compiled once and replayed
+            (CUDA graphs on CUDA, Inductor on a CPU; `taptr.runtime.step_capture`):
+            ``auto`` where a measurement kept for the machine and shape says it saves
+            more time than it costs over the frames to decode (a long video with nothing
+            kept measures it on the job), ``on`` always, ``off`` never. Speed only: the
+            outputs are the eager step's up to float rounding.
         source: the checkpoint's name or path, for messages.
         notice: what to tell users about the model (the default model's fallback line).
     """
@@ -155,6 +167,7 @@ class Predictor:
         context_points: int | None = None,
         support_points: str | None = None,
         history_frames: int | None = None,
+        capture: str = "auto",
         source: str | None = None,
         notice: str | None = None,
     ) -> None:
@@ -202,6 +215,12 @@ class Predictor:
                     f"got {history_frames}"
                 )
         self.history_frames = history_frames
+        if capture not in CAPTURE_CHOICES:
+            choices = ", ".join(CAPTURE_CHOICES)
+            raise ValueError(f"capture must be one of {choices}, got {capture!r}")
+        if capture == "on" and not isinstance(model, TAPTRv3):
+            raise ValueError("capture applies to TAPTRv3 models only (compile others instead)")
+        self.capture = capture
         self.source = source
         self.notice = notice
         if visibility_threshold is None:
@@ -396,6 +415,21 @@ class Predictor:
             return with_context(queries, self.context_points, self.input_size, num_frames)
         return with_support(queries, scheme)
 
+    def decoder_step(self, num_points: int | None, num_frames: int | None) -> StepCapture | None:
+        """TAPTRv3's per-frame decoder step as `capture` says (None: the model's own).
+
+        Args:
+            num_points: points the model tracks (support included), or None for a stream
+                (read from the first frame decoded).
+            num_frames: frames this run decodes, or None for a stream.
+        """
+        if not isinstance(self.model, TAPTRv3) or self.capture == "off":
+            return None
+        precision = f"{self.dtype} autocast {self.autocast}"
+        key = capture_key(self.device, self.model.config, self.input_size, precision)
+        model = self.model
+        return StepCapture(model.decoder, self.device, self.capture, key, num_points, num_frames)
+
     def precision(self) -> contextlib.AbstractContextManager[object]:
         """The context every model call runs in: autocast when the predictor asks for it.
 
@@ -429,6 +463,9 @@ class Predictor:
         dtype = self.dtype
         query_set = model_queries(queries, height, width, self.device, dtype)
         query_set = self.with_support(query_set, num_frames)
+        step = self.decoder_step(query_set.start_frames.shape[1], num_frames)
+        if step is not None and step.captured:  # nearby point counts replay one capture
+            query_set = pad_points(query_set, points_bucket(query_set.start_frames.shape[1]))
 
         def load(first: int, last: int) -> Tensor:
             if reverse:
@@ -444,6 +481,7 @@ class Predictor:
                 dtype,
                 on_window,
                 history_frames=self.history_frames,
+                step=step,
             )
         real = queries.shape[0]  # context points come after the user's and are dropped
         positions = output.positions[0, :, :real].float()

@@ -16,7 +16,7 @@ from taptr.cli.options import (
     check_device,
     check_input_size,
 )
-from taptr.types import AUTOCAST_TYPES
+from taptr.types import AUTOCAST_TYPES, CAPTURE_CHOICES
 
 if TYPE_CHECKING:
     from taptr.api.predictor import Predictor
@@ -103,6 +103,15 @@ def add_model_arguments(parser: argparse.ArgumentParser, max_frames: int | None 
         "a C++ compiler on CPU)",
     )
     parser.add_argument(
+        "--capture",
+        choices=CAPTURE_CHOICES,
+        default="auto",
+        help="TAPTRv3: compile its per-frame decoder step once and replay it (CUDA graphs on "
+        "GPUs, Inductor on CPUs; speed only): auto where a measurement kept for this machine "
+        "says it saves more than it costs over the video (a long video measures it on the "
+        "job), on, or off (default: auto)",
+    )
+    parser.add_argument(
         "--max-frames",
         type=int,
         default=max_frames,
@@ -157,6 +166,7 @@ def load_predictor(args: argparse.Namespace) -> Predictor:
         autocast=autocast_type(args.dtype),
         kernel=args.kernel,
         frames_per_call=args.frames_per_call,
+        capture=args.capture,
     )
     if args.compile:
         from taptr.export.compile import compile_model

@@ -12,8 +12,8 @@ weights included, so a retrained checkpoint or other weights saved under the sam
 as another model), its visibility threshold, the queries (the
 grid, a digest of the listed points, or a digest of the mask file), and the options that
 change what is computed or written. Not recorded: where or how fast the model runs
-(``--device``, ``--kernel``, ``--frames-per-call``, ``--compile``), which give the same
-tracks up to rounding.
+(``--device``, ``--kernel``, ``--frames-per-call``, ``--compile``, ``--capture``), which give
+the same tracks up to rounding.
 """
 
 from __future__ import annotations

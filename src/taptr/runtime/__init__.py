@@ -4,6 +4,7 @@
 This package holds what decides how they run here: which loop drives a model
 (`drivers`), how frames are encoded and kept (`frames`), the choices timed once per
 machine and shape and remembered on disk (`measured`, `measured_file`, `kernel_choice`,
-`cpu_choice`, `encode_choice`), and what a frame costs in dispatched operations
-(`op_count`). It imports the networks; they never import it.
+`cpu_choice`, `encode_choice`), TAPTRv3's per-frame step captured and replayed where that
+pays (`step_capture`), and what a frame costs in dispatched operations (`op_count`). It
+imports the networks; they never import it.
 """

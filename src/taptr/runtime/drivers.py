@@ -13,7 +13,7 @@ import torch
 from taptr.model.sliding_window import FrameSource, WindowBackend, run_windows
 from taptr.model.taptr import TAPTR
 from taptr.model.trajectory import QuerySet, TrackOutput
-from taptr.model.v3.per_frame import run_frames
+from taptr.model.v3.per_frame import DecoderStep, run_frames
 from taptr.model.v3.taptr import TAPTRv3
 from taptr.windows import window_ranges
 
@@ -28,6 +28,7 @@ def run_tracker(
     *,
     history_frames: int | None = None,
     static_shapes: bool = False,
+    step: DecoderStep | None = None,
 ) -> TrackOutput:
     """Tracks the queries through a whole video with the model's own driver.
 
@@ -42,6 +43,8 @@ def run_tracker(
             model's. Other models have no history.
         static_shapes: TAPTRv3: the decoder's shapes stay fixed from frame to frame
             (`taptr.model.v3.per_frame.FrameState.static_shapes`), for a compiled decoder.
+        step: TAPTRv3: what runs its decoder on a frame (a captured step,
+            `taptr.runtime.step_capture`); None: the model's decoder.
 
     Raises:
         ValueError: ``history_frames`` for a model without a history.
@@ -56,9 +59,12 @@ def run_tracker(
             on_step,
             history_frames=history_frames,
             static_shapes=static_shapes,
+            step=step,
         )
     if history_frames is not None:
         raise ValueError("history_frames applies to TAPTRv3 models only")
+    if step is not None:
+        raise ValueError("a decoder step applies to TAPTRv3 models only")
     return run_windows(model, queries, num_frames, frames, dtype, on_step)
 
 

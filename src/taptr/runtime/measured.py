@@ -108,6 +108,23 @@ def choice_key(what: str, device: torch.device, model_signature: str, shape: str
     return f"{what} | {device_name(device)} | torch {torch.__version__} | {model} | {shape}"
 
 
+def kept_choice(key: str, path: Path | None = None) -> Any:
+    """The value kept under ``key`` (None when there is none); ``path``: default `measured_path`."""
+    return read_choices(path or measured_path()).choices.get(key)
+
+
+def keep(key: str, value: Any, path: Path | None = None) -> None:
+    """Keeps ``value`` under ``key``, replacing what was there (JSON values only).
+
+    Read just before writing, so that what another process wrote meanwhile stays; a file
+    that is not taptr's own is left alone (`taptr.runtime.measured_file`).
+    """
+    path = path or measured_path()
+    kept = read_choices(path)
+    if kept.ours:
+        write_choices(path, {**kept.choices, key: value})
+
+
 def remembered(
     key: str,
     measure: Callable[[], Any],
@@ -128,7 +145,5 @@ def remembered(
     if key in kept.choices and (valid is None or valid(kept.choices[key])):
         return kept.choices[key]
     value = measure()
-    kept = read_choices(path)  # another process may have written meanwhile
-    if kept.ours:
-        write_choices(path, {**kept.choices, key: value})
+    keep(key, value, path)
     return value

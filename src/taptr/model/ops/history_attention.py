@@ -31,6 +31,11 @@ if TYPE_CHECKING:
 CHUNK_ELEMENTS = 1 << 24
 """Largest (queries × held frames × channels) block of one chunk (64 MB in float32)."""
 
+COMPILED_CHUNK_QUERIES = 256
+"""Queries per chunk in a compiled step: a chunk that depends on the held frames would make
+the compiled step specialise on their number and be compiled again each time the history
+buffer doubles (256 × H × C floats: 256 MB for 1,000 held frames of C = 256)."""
+
 
 def history_attention(
     attention: MultiheadAttention,
@@ -68,6 +73,8 @@ def history_attention(
     key_images = torch.einsum("qmd,mdc->qmc", q, w_k_heads)  # (Q, M, C)
     key_bias = torch.einsum("qmd,md->qm", q, b_k.view(heads, -1))  # (Q, M)
     chunk = max(1, CHUNK_ELEMENTS // max(1, frames * channels))
+    if torch.compiler.is_compiling():
+        chunk = COMPILED_CHUNK_QUERIES
     mixed = []
     for start in range(0, queries, chunk):
         part = slice(start, start + chunk)

@@ -26,12 +26,13 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple, Protocol
 
 import torch
 from torch import Tensor, nn
 
 from taptr.geometry import inverse_sigmoid
+from taptr.model.decoder import DecoderOutput
 from taptr.model.ops.constants import kept
 from taptr.model.sliding_window import FrameSource
 from taptr.model.taptr import FrameFeatures
@@ -57,6 +58,17 @@ class FrameOutput(NamedTuple):
     updated_positions: Tensor
 
 
+class DecoderStep(Protocol):
+    """Runs ``model.decoder`` on a frame, called with its arguments, eagerly or captured."""
+
+    captured: bool
+    """Whether the next call replays a captured step (which needs `FrameState.static_shapes`)."""
+
+    def __call__(self, *args: Any) -> DecoderOutput:
+        """The decoder's outputs on one frame (the arguments of ``V3Decoder.forward``)."""
+        ...
+
+
 @dataclass
 class FrameState:
     """Everything the next frame needs; no other state exists anywhere.
@@ -76,7 +88,10 @@ class FrameState:
             nothing can be captured and replayed).
         next_frame: the frame to decode next.
         static_shapes: the decoder reads the history's whole buffer (`held_frames`), so
-            that its shapes stay the same from frame to frame (compiled or captured steps).
+            that its shapes stay the same from frame to frame (compiled or captured steps);
+            also in effect on the frames a ``step`` replays a capture.
+        step: what runs the decoder on a frame (a step captured for replay,
+            `taptr.runtime.step_capture`); None: ``model.decoder``.
     """
 
     queries: QuerySet
@@ -89,6 +104,7 @@ class FrameState:
     start_frames: tuple[int, ...] = ()
     next_frame: int = 0
     static_shapes: bool = False
+    step: DecoderStep | None = None
 
 
 def compiled(module: nn.Module) -> bool:
@@ -131,6 +147,7 @@ def start_state(
     dtype: torch.dtype,
     history_frames: int | None = None,
     static_shapes: bool = False,
+    step: DecoderStep | None = None,
 ) -> FrameState:
     """The state before the first frame.
 
@@ -142,6 +159,7 @@ def start_state(
         static_shapes: `FrameState.static_shapes`; always on when the decoder is
             compiled (``nn.Module.compile``, `taptr.export.compile_model`), which would
             otherwise trace it again for every history length.
+        step: `FrameState.step`.
     """
     batch, points = queries.start_frames.shape
     channels = model.content_channels
@@ -161,6 +179,7 @@ def start_state(
         history=history,
         start_frames=distinct_starts(queries),
         static_shapes=static_shapes or compiled(model.decoder),
+        step=step,
     )
 
 
@@ -249,6 +268,7 @@ def decode_frame(model: TAPTRv3, state: FrameState, frames: FrameSource) -> Fram
         held,
         state.context,
         all_tracked=state.start_frames[-1] <= frame,
+        decoder=state.step,
     )
     step = update[..., None]
     state.positions = [
@@ -277,7 +297,7 @@ def held_frames(model: TAPTRv3, state: FrameState, frame: int) -> HeldFrames:
     rounding.
     """
     history, starts = state.history, state.queries.start_frames
-    if not state.static_shapes:
+    if not (state.static_shapes or (state.step is not None and state.step.captured)):
         frames = history.frames()  # (H,)
         weights = frame_weights(frames, starts, history.visibility_logits, model.visibility_weights)
         return HeldFrames(history.content, frame - frames, weights)
@@ -320,6 +340,7 @@ def run_frames(
     on_frame: Callable[[], object] | None = None,
     history_frames: int | None = None,
     static_shapes: bool = False,
+    step: DecoderStep | None = None,
 ) -> TrackOutput:
     """Tracks the queries through a whole video, frame by frame.
 
@@ -332,8 +353,9 @@ def run_frames(
         on_frame: called after each frame (progress reporting).
         history_frames: the most frames held per point (0: all); default the model's.
         static_shapes: `FrameState.static_shapes`.
+        step: `FrameState.step`.
     """
-    state = start_state(model, queries, dtype, history_frames, static_shapes)
+    state = start_state(model, queries, dtype, history_frames, static_shapes, step)
     outputs = []
     for _ in range(num_frames):
         outputs.append(decode_frame(model, state, frames))

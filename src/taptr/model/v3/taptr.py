@@ -7,6 +7,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 from torch import Tensor
 
 from taptr.config import ModelConfig
@@ -98,6 +100,7 @@ class TAPTRv3(TAPTR):
         held: HeldFrames,
         context: Tensor | None,
         all_tracked: bool | None = None,
+        decoder: Callable[..., DecoderOutput] | None = None,
     ) -> DecoderOutput:
         """Runs the decoder on one frame.
 
@@ -112,9 +115,10 @@ class TAPTRv3(TAPTR):
             context: (B, N, K, K, C) initial contexts, or None.
             all_tracked: every point is tracked (known without asking the device), or
                 None to read ``tracking`` (`taptr.model.v3.decoder.V3Decoder`).
+            decoder: what runs ``self.decoder`` (a captured step); None: the module.
         """
         assert isinstance(self.decoder, V3Decoder)
-        return self.decoder(
+        return (decoder or self.decoder)(
             content,
             positions,
             memory,
