@@ -145,7 +145,7 @@ class Predictor:
             ``auto`` where a measurement kept for the machine and shape says it saves
             more time than it costs over the frames to decode (a long video with nothing
             kept measures it on the job), ``on`` always, ``off`` never. Speed only: the
-            outputs are the eager step's up to float rounding.
+            outputs are the eager step's up to float rounding. Not on a CPU in bfloat16.
         source: the checkpoint's name or path, for messages.
         notice: what to tell users about the model (the default model's fallback line).
     """
@@ -424,6 +424,11 @@ class Predictor:
             num_frames: frames this run decodes, or None for a stream.
         """
         if not isinstance(self.model, TAPTRv3) or self.capture == "off":
+            return None
+        if self.device.type == "cpu" and self.autocast == torch.bfloat16:
+            # the CPU's bfloat16 products are switched by a context variable, which a
+            # compiled step reads once, when traced: its outputs were measured neither
+            # float32's nor eager bfloat16's (docs/BENCHMARKS.md)
             return None
         precision = f"{self.dtype} autocast {self.autocast}"
         key = capture_key(self.device, self.model.config, self.input_size, precision)

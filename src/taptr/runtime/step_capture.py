@@ -135,6 +135,11 @@ def pad_points(queries: QuerySet, count: int) -> QuerySet:
     )
 
 
+def _kind(device: torch.device) -> str:
+    """The key of the first guesses: ``cuda`` or ``cpu`` (other devices guessed as CPUs)."""
+    return "cuda" if device.type == "cuda" else "cpu"
+
+
 def _history_size_may_change(args: tuple[Any, ...]) -> None:
     """Compiles for any history buffer size at once, instead of once more after it doubles."""
     for held in args:
@@ -219,6 +224,18 @@ class StepCapture:
         return output
 
     def _captured_call(self, args: tuple[Any, ...]) -> Any:
+        if self.decoder not in _captured and self.setting == "auto":
+            cost = (
+                self.timing.capture_s
+                if self.timing
+                else GUESSED_CAPTURE_SECONDS[_kind(self.device)]
+            )
+            # a progress bar that stops for a minute needs a reason
+            logger.warning(
+                "compiling TAPTRv3's per-frame step to replay it (about %.0f s, once per "
+                "process; capture='off' or --capture off skips it)",
+                cost,
+            )
         try:
             step = captured_step(self.decoder, self.device)
             if self.device.type == "cuda":
@@ -263,7 +280,7 @@ class StepCapture:
 
     def _start_capture_if_it_may_pay(self) -> None:
         eager_s = min(self.eager_times[1:])
-        kind = "cuda" if self.device.type == "cuda" else "cpu"
+        kind = _kind(self.device)
         guess = CaptureTiming(
             eager_s, eager_s * (1 - GUESSED_GAIN[kind]), GUESSED_CAPTURE_SECONDS[kind]
         )
