@@ -258,3 +258,27 @@ def test_a_cpu_in_bfloat16_keeps_the_eager_step():
     )
     assert predictor.decoder_step(16, 100) is None
     assert _predictor("on").decoder_step(16, 100).captured
+
+
+def test_taptr_track_capture_on_writes_the_eager_tracks(eager_backend, tmp_path):
+    from torch._dynamo.utils import counters
+
+    from taptr.checkpoint import save_checkpoint
+    from taptr.cli.main import main
+    from taptr.io.video import write_video
+
+    torch.manual_seed(0)
+    weights = save_checkpoint(build_model("tiny-v3"), tmp_path / "tiny_v3.pth")
+    frames = np.random.default_rng(2).integers(0, 256, (6, 48, 64, 3), dtype=np.uint8)
+    clip = write_video(tmp_path / "clip.mp4", frames, fps=10)
+    tracks, graphs = {}, {}
+    for capture in ("off", "on"):
+        out = tmp_path / capture
+        argv = ["track", str(clip), "--grid", "3", "--checkpoint", str(weights)]
+        argv += ["--kernel", "gather", "--frames-per-call", "1", "--capture", capture]
+        counters.clear()
+        assert main([*argv, "--out", str(out)]) == 0
+        tracks[capture] = np.load(out / "tracks.npz")["tracks"]
+        graphs[capture] = counters["stats"]["unique_graphs"]
+    assert graphs == {"off": 0, "on": 1}  # one graph for every frame
+    np.testing.assert_allclose(tracks["on"], tracks["off"], atol=1e-3)

@@ -17,12 +17,12 @@ from typing import Any, Literal
 BackboneKind = Literal["resnet50", "resnet18", "convnet"]
 CrossAttentionKind = Literal["key_aware", "standard"]
 ResizeKind = Literal["lanczos", "bilinear"]
-SupportKind = Literal["random", "local_and_grid", "grid"]
+SupportKind = Literal["random", "local_and_grid", "grid", "none"]
 
 RESNET50_CHANNELS = (256, 512, 1024, 2048)
 RESNET18_CHANNELS = (64, 128, 256, 512)
 RESNET_CHANNELS = {"resnet50": RESNET50_CHANNELS, "resnet18": RESNET18_CHANNELS}
-SUPPORT_KINDS = ("random", "local_and_grid", "grid")
+SUPPORT_KINDS = ("random", "local_and_grid", "grid", "none")
 
 MAX_WIDTH = 4096
 """Largest channel count (d_model, backbone widths); the paper uses 256 and 2048."""
@@ -198,7 +198,8 @@ class ModelConfig:
         support_points: how the predictor surrounds the user's points (`taptr.api.context`):
             ``"random"`` pads to ``context_points`` seeded random points (TAPTRv2's
             evaluation and demo); ``"local_and_grid"`` adds 63 static points around each
-            query and a 6 × 6 grid (TAPTRv3's evaluation); ``"grid"`` the grid only.
+            query and a 6 × 6 grid (TAPTRv3's evaluation); ``"grid"`` the grid only;
+            ``"none"`` nothing (taptr's own small TAPTRv3, measured as good without).
         context_attention: TAPTRv3's context-aware cross-attention: each sampling location
             is scored by comparing the 3 × 3 patch of keys around it with the point's
             initial 3 × 3 patch (version 3 only; off = the v2 key-aware dot product).

@@ -4,7 +4,7 @@ The static step (`taptr.model.v3.per_frame.FrameState.static_shapes`) has the sa
 shapes from frame to frame and asks the device nothing, so it can be compiled once and
 replayed: on CUDA ``torch.compile(mode="reduce-overhead")`` records Inductor's kernels as
 CUDA graphs, one launch per frame instead of hundreds; on a CPU Inductor's default mode
-fuses the small element-wise operations (docs/BENCHMARKS.md: 1.2-1.3× on the decoder).
+fuses the small element-wise operations (docs/BENCHMARKS.md: 1.1-1.24× on the decoder).
 The outputs are the eager step's up to float rounding.
 
 Capturing costs seconds to minutes once (compilation; Inductor keeps what it compiled
@@ -42,13 +42,14 @@ logger = logging.getLogger(__name__)
 MEASURED_FRAMES = 3
 """Frames timed each way when measuring on the job (the fastest of each is kept)."""
 
-GUESSED_CAPTURE_SECONDS = {"cuda": 60.0, "cpu": 150.0}
+GUESSED_CAPTURE_SECONDS = {"cuda": 60.0, "cpu": 90.0}
 """First guess of what capturing costs, before anything was measured on the machine:
-Inductor compiled the decoder in 61-136 s on a 2-core AMD EPYC (docs/BENCHMARKS.md)."""
+Inductor compiled TAPTRv3's decoder step in 73-81 s on a 2-core AMD EPYC (15 s in a later
+process, from its cache; docs/BENCHMARKS.md)."""
 
-GUESSED_GAIN = {"cuda": 0.5, "cpu": 0.2}
-"""First guess of the share of the eager step's time a captured step saves: on a CPU the
-measured 1.2-1.3×; on CUDA the eager step waits on hundreds of launches."""
+GUESSED_GAIN = {"cuda": 0.5, "cpu": 0.15}
+"""First guess of the share of the eager step's time a captured step saves: on that CPU
+8-19 % (1.09-1.24×); on CUDA the eager step waits on hundreds of launches."""
 
 BUCKET = 128
 """Captured runs pad their points up to a multiple of this, so that calls with nearby

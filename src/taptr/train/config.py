@@ -231,7 +231,12 @@ def taptrv3() -> TrainConfig:
 
 
 def small_v3() -> TrainConfig:
-    """`small`'s CPU recipe for a TAPTRv3-architecture model (light backbone, C = 64)."""
+    """`small`'s CPU recipe for a TAPTRv3-architecture model (light backbone, C = 64).
+
+    Its models track without support points: trained with 128 points per clip, one scored
+    within 0.3 AJ with and without them at 8, 32 and 256 queries, at a fifth to a ninetieth
+    of the time (docs/RESULTS.md, "Support points for TAPTRv3's queries").
+    """
     base = small()
     model = model_presets.taptrv3().replace(
         backbone=model_presets.small().backbone,
@@ -239,6 +244,7 @@ def small_v3() -> TrainConfig:
         num_heads=4,
         ffn_dim=256,
         input_size=(128, 128),
+        support_points="none",
     )
     return dataclasses.replace(
         base, model=model, out_dir="runs/small_v3", supervise_occluded_positions=False
