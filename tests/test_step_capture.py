@@ -282,3 +282,36 @@ def test_taptr_track_capture_on_writes_the_eager_tracks(eager_backend, tmp_path)
         graphs[capture] = counters["stats"]["unique_graphs"]
     assert graphs == {"off": 0, "on": 1}  # one graph for every frame
     np.testing.assert_allclose(tracks["on"], tracks["off"], atol=1e-3)
+
+
+@pytest.mark.parametrize("case", ["v3_r18_small", "v3_r18_fifo"])
+def test_the_captured_step_reproduces_the_official_golden_cases(
+    eager_backend, official_v3_checkpoint, case
+):
+    import taptr
+    from taptr.runtime.drivers import run_tracker
+    from tests.helpers import golden_inputs, load_golden
+
+    golden = load_golden(case)
+    model = taptr.load_checkpoint(official_v3_checkpoint).eval()
+    video, starts, xy, labels = golden_inputs(golden)
+    queries = QuerySet(starts[None], xy[None], (labels == 1)[None])
+    history = 16 if case == "v3_r18_fifo" else None
+    outputs = {}
+    for capture in ("off", "on"):
+        step = StepCapture(model.decoder, torch.device("cpu"), capture, _key, 1, None)
+        with torch.no_grad():
+            outputs[capture] = run_tracker(
+                model,
+                queries,
+                video.shape[1],
+                EncodedFrames(model, video),
+                torch.float32,
+                history_frames=history,
+                step=step if capture == "on" else None,
+            ).positions[0]
+    assert step.captured and step.calls > 1
+    # normalised positions: the captured step against the eager one, and the official code
+    torch.testing.assert_close(outputs["on"], outputs["off"], atol=1e-5, rtol=0)
+    official = torch.from_numpy(golden["out_pred_xy_norm"]).transpose(0, 1).float()
+    assert float((outputs["on"] - official).abs().max()) <= 3e-5
