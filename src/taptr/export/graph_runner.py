@@ -118,10 +118,12 @@ class GraphBackend:
         tracking: Tensor,
         update: Tensor,
         tables: FrameTables | None = None,
+        all_tracked: bool | None = None,
     ) -> WindowDecoding:
         """The ``decode_window`` graph; shapes as in `taptr.model.sliding_window.WindowBackend`.
 
-        The graph projects every frame's keys and values itself, so ``tables`` is not read.
+        The graph projects every frame's keys and values itself and masks by ``tracking``,
+        so ``tables`` and ``all_tracked`` are not read.
         """
         inputs = (memory, content, positions, initial, tracking, update)
         window_positions, visibility_logits, next_content = (

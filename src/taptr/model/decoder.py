@@ -389,6 +389,7 @@ class Decoder(nn.Module):
         update: Tensor,
         execution: Execution,
         tables: FrameTables | None = None,
+        all_tracked: bool | None = None,
     ) -> DecoderOutput:
         """Decodes one window.
 
@@ -402,8 +403,12 @@ class Decoder(nn.Module):
             execution: how to run.
             tables: the tracking run's key and value tables, started for this window
                 (`taptr.model.frame_tables.FrameTables.start_window`), or None.
+            all_tracked: every entry of ``tracking`` is set (known on the host), or None
+                to read it.
         """
-        masks = attention_masks(tracking, execution.grouped_point_attention)
+        grouped = execution.grouped_point_attention
+        # ungrouped attention keeps its full masks, as before (the reference execution)
+        masks = attention_masks(tracking, grouped, all_tracked if grouped else None)
         prepared = self.prepare_window(content, memory, spatial_shapes, execution, tables)
         return self.run_layers(
             content,

@@ -28,7 +28,14 @@ from torch import Tensor
 from taptr.geometry import inverse_sigmoid
 from taptr.model.frame_tables import FrameTables
 from taptr.model.taptr import TAPTR, FrameFeatures
-from taptr.model.trajectory import QuerySet, TrackerState, TrackOutput, Trajectory, finish
+from taptr.model.trajectory import (
+    QuerySet,
+    TrackerState,
+    TrackOutput,
+    Trajectory,
+    distinct_starts,
+    finish,
+)
 from taptr.model.trajectory import keep_points as keep_points  # part of the driver's API
 from taptr.model.v1.memory_efficient import first_window_content_frames
 from taptr.windows import content_padding_gap, window_ranges
@@ -107,6 +114,7 @@ class WindowBackend(Protocol):
         tracking: Tensor,
         update: Tensor,
         tables: FrameTables | None = None,
+        all_tracked: bool | None = None,
     ) -> WindowDecoding:
         """Decodes one window and computes the content handed to the next one.
 
@@ -120,6 +128,8 @@ class WindowBackend(Protocol):
             update: (B, W_t, N) bool, tracking entries after the start frame.
             tables: the run's store of per-frame key and value tables, started for this
                 window (`taptr.model.frame_tables`); a backend may ignore it.
+            all_tracked: every entry of ``tracking`` is set, as the host knows without
+                asking the device; None to read it. A backend may ignore it.
         """
         ...
 
@@ -166,10 +176,11 @@ class ModelBackend:
         tracking: Tensor,
         update: Tensor,
         tables: FrameTables | None = None,
+        all_tracked: bool | None = None,
     ) -> WindowDecoding:
         """`TAPTR.decode_window` then `TAPTR.update_content` (as `WindowBackend`)."""
         decoded = self.model.decode_window(
-            memory, spatial_shapes, content, positions, tracking, update, tables
+            memory, spatial_shapes, content, positions, tracking, update, tables, all_tracked
         )
         initial = initial[:, None].expand_as(content)  # (B, W_t, N, C)
         next_content = self.model.update_content(initial, content, decoded.features, update)
@@ -206,6 +217,7 @@ def start_state(
         updated_positions=(
             [Trajectory(position) for _ in range(layers)] if backend.has_position_update else []
         ),
+        start_frames=distinct_starts(queries),
     )
 
 
@@ -219,6 +231,10 @@ def add_points(model: TAPTR | WindowBackend, state: TrackerState, queries: Query
     state.queries = QuerySet(
         *(torch.cat(pair, dim=1) for pair in zip(state.queries, queries, strict=True))
     )
+    state.start_frames = tuple(sorted({*state.start_frames, *fresh.start_frames}))
+    # the new points' start frames are asked for again (the device mask keeps earlier
+    # points' content where a start frame is shared)
+    state.initialised_starts = state.initialised_starts - set(fresh.start_frames)
     state.initial_content = torch.cat((state.initial_content, fresh.initial_content), dim=1)
     state.initialised = torch.cat((state.initialised, fresh.initialised), dim=1)
     state.content.add_points(fresh.content.future)
@@ -250,12 +266,18 @@ def initialise_points(
     memory, spatial_shapes = features
     starts = state.queries.start_frames if content_frames is None else content_frames
     new = (~state.initialised) & (starts >= first) & (starts < first + memory.shape[1])
-    if not bool(new.any()):
+    if content_frames is None:  # the host knows which start frames may have new points
+        frames = {f for f in state.start_frames if first <= f < first + memory.shape[1]}
+        frames -= state.initialised_starts
+        state.initialised_starts = state.initialised_starts | frames
+    else:  # TAPTR v1's memory-efficient mode: content frames the host does not hold
+        frames = set(range(first, first + memory.shape[1])) if bool(new.any()) else set()
+    if not frames:
         return
     samples = None
     for offset in range(memory.shape[1]):
         here = new & (starts == first + offset)
-        if bool(here.any()):
+        if first + offset in frames and (content_frames is None or bool(here.any())):
             frame_samples = backend.sample_points(
                 memory[:, offset], spatial_shapes, state.queries.positions
             )
@@ -305,7 +327,7 @@ def decode_window(
     starts = state.queries.start_frames[:, None, :]  # (B, 1, N)
     tracking = frames[None, :, None] >= starts  # (B, W_t, N)
     update = frames[None, :, None] > starts
-    if not bool(update.any()):
+    if not state.start_frames or state.start_frames[0] >= last:  # no point past its start
         return  # the official code skips such windows entirely, padding included
 
     memory, spatial_shapes = frames_source(first, last)
@@ -323,6 +345,7 @@ def decode_window(
         tracking,
         update,
         state.tables,
+        all_tracked=state.start_frames[-1] <= first,
     )
     for layer in range(backend.num_layers):
         state.positions[layer].write(first, decoded.positions[layer], update)

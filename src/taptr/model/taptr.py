@@ -194,6 +194,7 @@ class TAPTR(nn.Module):
         tracking: Tensor,
         update: Tensor,
         tables: FrameTables | None = None,
+        all_tracked: bool | None = None,
     ) -> DecoderOutput:
         """Runs the decoder over one window.
 
@@ -206,6 +207,8 @@ class TAPTR(nn.Module):
             update: (B, W_t, N) bool, tracking entries after the start frame.
             tables: the run's key and value tables, started for this window, or None
                 (`taptr.model.frame_tables`).
+            all_tracked: every entry of ``tracking`` is set (known on the host), or None
+                to read it (`taptr.model.masks.attention_masks`).
         """
         return self.decoder(
             content,
@@ -216,6 +219,7 @@ class TAPTR(nn.Module):
             update,
             self.execution,
             tables,
+            all_tracked,
         )
 
     def update_content(

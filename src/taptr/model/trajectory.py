@@ -122,6 +122,10 @@ class TrackerState:
         next_window: index of the next window to decode.
         tables: the decoder's key and value tables of the frames the next window shares
             with the last one (`taptr.model.frame_tables`).
+        start_frames: the points' distinct start frames, in order, on the host, read once
+            when points are added or removed: whether a window updates any point, starts
+            any and tracks all is decided without asking the device.
+        initialised_starts: start frames whose points have taken their content.
     """
 
     queries: QuerySet
@@ -134,6 +138,13 @@ class TrackerState:
     updated_positions: list[Trajectory] = field(default_factory=list)
     next_window: int = 0
     tables: FrameTables = field(default_factory=FrameTables)
+    start_frames: tuple[int, ...] = ()
+    initialised_starts: frozenset[int] = frozenset()
+
+
+def distinct_starts(queries: QuerySet) -> tuple[int, ...]:
+    """The distinct start frames of the queries, in order (read once, when points change)."""
+    return tuple(torch.unique(queries.start_frames).tolist())
 
 
 class TrackOutput(NamedTuple):
@@ -157,6 +168,7 @@ class TrackOutput(NamedTuple):
 def keep_points(state: TrackerState, keep: Tensor) -> None:
     """Drops the points not selected by the (N,) bool mask from a running state."""
     state.queries = QuerySet(*(q[:, keep] for q in state.queries))
+    state.start_frames = distinct_starts(state.queries)
     state.initial_content = state.initial_content[:, keep]
     state.initialised = state.initialised[:, keep]
     for trajectory in [

@@ -36,7 +36,7 @@ from taptr.model.decoder import DecoderOutput
 from taptr.model.ops.constants import kept
 from taptr.model.sliding_window import FrameSource
 from taptr.model.taptr import FrameFeatures
-from taptr.model.trajectory import QuerySet, TrackOutput
+from taptr.model.trajectory import QuerySet, TrackOutput, distinct_starts
 from taptr.model.v3.decoder import HeldFrames
 from taptr.model.v3.history import History, frame_weights
 from taptr.model.v3.taptr import TAPTRv3
@@ -113,11 +113,6 @@ def compiled(module: nn.Module) -> bool:
     # sets ``_compiled_call_impl``; looking for either imports nothing of dynamo
     wrapped = getattr(module, "_orig_mod", None) is not None
     return wrapped or getattr(module, "_compiled_call_impl", None) is not None
-
-
-def distinct_starts(queries: QuerySet) -> tuple[int, ...]:
-    """The distinct start frames of the queries, in order (read once, when points change)."""
-    return tuple(torch.unique(queries.start_frames).tolist())
 
 
 def query_logits(queries: QuerySet, dtype: torch.dtype) -> Tensor:
