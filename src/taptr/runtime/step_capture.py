@@ -217,7 +217,7 @@ class StepCapture:
             self._look_up(args[0].shape[2])  # content (B, 1, N, C)
         self.calls += 1
         self.frames_left -= 1
-        timed = self.measuring or (self.captured and self.calls == 1 and self.timing)
+        timed = self.measuring or (self.captured and self.calls == 1 and self.timing is not None)
         start = self._now() if timed else 0.0
         output = self._captured_call(args) if self.captured else self.decoder(*args)
         if timed and (self.measuring or self.captured):  # not after a failed capture
