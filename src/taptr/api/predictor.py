@@ -221,7 +221,7 @@ class Predictor:
             choices = ", ".join(CAPTURE_CHOICES)
             raise ValueError(f"capture must be one of {choices}, got {capture!r}")
         if capture == "on" and not isinstance(model, TAPTRv3):
-            raise ValueError("capture applies to TAPTRv3 models only (compile others instead)")
+            raise ValueError("capture applies to TAPTRv3 models only (others: --compile)")
         self.capture = capture
         self.source = source
         self.notice = notice
