@@ -35,6 +35,7 @@ from taptr.model.trajectory import (
     Trajectory,
     distinct_starts,
     finish,
+    joined_starts,
 )
 from taptr.model.trajectory import keep_points as keep_points  # part of the driver's API
 from taptr.model.v1.memory_efficient import first_window_content_frames
@@ -231,7 +232,7 @@ def add_points(model: TAPTR | WindowBackend, state: TrackerState, queries: Query
     state.queries = QuerySet(
         *(torch.cat(pair, dim=1) for pair in zip(state.queries, queries, strict=True))
     )
-    state.start_frames = tuple(sorted({*state.start_frames, *fresh.start_frames}))
+    state.start_frames = joined_starts(state.start_frames, fresh.start_frames)
     # the new points' start frames are asked for again (the device mask keeps earlier
     # points' content where a start frame is shared)
     state.initialised_starts = state.initialised_starts - set(fresh.start_frames)
@@ -264,20 +265,21 @@ def initialise_points(
             frame (TAPTR v1's memory-efficient mode passes others).
     """
     memory, spatial_shapes = features
+    count = memory.shape[1]
     starts = state.queries.start_frames if content_frames is None else content_frames
-    new = (~state.initialised) & (starts >= first) & (starts < first + memory.shape[1])
+    new = (~state.initialised) & (starts >= first) & (starts < first + count)
     if content_frames is None:  # the host knows which start frames may have new points
-        frames = {f for f in state.start_frames if first <= f < first + memory.shape[1]}
+        frames = {f for f in state.start_frames if first <= f < first + count}
         frames -= state.initialised_starts
-        state.initialised_starts = state.initialised_starts | frames
+        state.initialised_starts |= frames
     else:  # TAPTR v1's memory-efficient mode: content frames the host does not hold
-        frames = set(range(first, first + memory.shape[1])) if bool(new.any()) else set()
+        frames = set(torch.unique(starts[new]).tolist())
     if not frames:
         return
     samples = None
-    for offset in range(memory.shape[1]):
+    for offset in range(count):
         here = new & (starts == first + offset)
-        if first + offset in frames and (content_frames is None or bool(here.any())):
+        if first + offset in frames:
             frame_samples = backend.sample_points(
                 memory[:, offset], spatial_shapes, state.queries.positions
             )

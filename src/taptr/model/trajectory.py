@@ -147,6 +147,11 @@ def distinct_starts(queries: QuerySet) -> tuple[int, ...]:
     return tuple(torch.unique(queries.start_frames).tolist())
 
 
+def joined_starts(starts: tuple[int, ...], more: tuple[int, ...]) -> tuple[int, ...]:
+    """The distinct start frames of two point sets joined, in order (no device read)."""
+    return tuple(sorted({*starts, *more}))
+
+
 class TrackOutput(NamedTuple):
     """Full-video trajectories after all windows.
 

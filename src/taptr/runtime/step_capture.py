@@ -165,7 +165,7 @@ class StepCapture:
         decoder: the model's decoder (on ``device``).
         device: where it runs.
         setting: one of `CAPTURE_CHOICES`.
-        key: the `taptr.runtime.measured.choice_key` its timing is kept under, for a
+        key_for: the `taptr.runtime.measured.choice_key` its timing is kept under, for a
             number of points (`capture_key`).
         points: points the run tracks, or None to read them from the first call (a
             stream, whose points come and go).
@@ -178,7 +178,7 @@ class StepCapture:
         decoder: nn.Module,
         device: torch.device,
         setting: str,
-        key: Callable[[int], str],
+        key_for: Callable[[int], str],
         points: int | None,
         frames: int | None,
         clock: Callable[[], float] = time.perf_counter,
@@ -187,7 +187,7 @@ class StepCapture:
             choices = ", ".join(CAPTURE_CHOICES)
             raise ValueError(f"unknown capture {setting!r}; choose from {choices}")
         self.decoder, self.device, self.setting = decoder, device, setting
-        self.key_for, self.key = key, ""
+        self.key_for, self.key = key_for, ""
         self.clock = clock
         self.frames_left = math.inf if frames is None else frames
         self.timing: CaptureTiming | None = None

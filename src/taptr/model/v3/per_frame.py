@@ -36,7 +36,7 @@ from taptr.model.decoder import DecoderOutput
 from taptr.model.ops.constants import kept
 from taptr.model.sliding_window import FrameSource
 from taptr.model.taptr import FrameFeatures
-from taptr.model.trajectory import QuerySet, TrackOutput, distinct_starts
+from taptr.model.trajectory import QuerySet, TrackOutput, distinct_starts, joined_starts
 from taptr.model.v3.decoder import HeldFrames
 from taptr.model.v3.history import History, frame_weights
 from taptr.model.v3.taptr import TAPTRv3
@@ -197,7 +197,7 @@ def add_points(model: TAPTRv3, state: FrameState, queries: QuerySet) -> None:
         torch.cat(p, 1) for p in zip(state.updated_positions, fresh.updated_positions, strict=True)
     ]
     state.history.add_points(queries.start_frames.shape[1])
-    state.start_frames = tuple(sorted({*state.start_frames, *fresh.start_frames}))
+    state.start_frames = joined_starts(state.start_frames, fresh.start_frames)
 
 
 def keep_points(state: FrameState, keep: Tensor) -> None:
