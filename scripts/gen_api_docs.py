@@ -77,7 +77,10 @@ SECTIONS = {
         "taptr.corpus.pipeline",
         "taptr.corpus.inputs",
         "taptr.corpus.manifest",
-        "taptr.corpus.results",
+        "taptr.corpus.settings",
+        "taptr.corpus.layout",
+        "taptr.corpus.schema",
+        "taptr.corpus.storage",
     ],
 }
 """Heading → modules, in the order they appear in the page."""

@@ -127,3 +127,21 @@ def run_torchrun(
     return subprocess.run(
         [*command, *args], env=env, capture_output=True, text=True, timeout=timeout
     )
+
+
+def panning_clip(count: int, speed: int, seed: int) -> np.ndarray:
+    """(count, 32, 48, 3) frames of a random texture panning left by ``speed`` pixels a frame."""
+    texture = np.random.default_rng(seed).integers(0, 256, (32, 48 + count * speed, 3), np.uint8)
+    return np.stack([texture[:, speed * t : speed * t + 48] for t in range(count)])
+
+
+def write_truncated_clip(path: Path) -> int:
+    """A 24-frame clip cut short (its header still declares 24); returns the frames it decodes."""
+    from taptr.io.video import read_video, video_info, write_video
+
+    write_video(path, panning_clip(24, 2, 7), fps=10)
+    data = path.read_bytes()
+    path.write_bytes(data[: int(len(data) * 0.8)])
+    decoded = len(read_video(path))
+    assert video_info(path).num_frames == 24 and decoded < 24
+    return decoded

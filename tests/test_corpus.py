@@ -1,20 +1,26 @@
-"""``taptr track-corpus`` on a local Ray instance: complete rows, killed actors, reruns, failures.
+"""``taptr track-corpus`` as Ray jobs: killed actors, truncated files, reruns, signals, S3.
 
-The Ray job runs once, in one test (Ray starts in seconds, actors in more, and pytest-xdist
-may send tests of one module to different workers): 20 videos of mixed lengths, one of them
-killed mid-video once (its actor dies as the OOM killer would end it), a corrupt file and an
-oversized one. The tests around it need no Ray: the bound on the attempts at a video whose
-worker keeps dying, manifests, the schema, progress lines.
+The main job runs once (Ray starts in seconds, actors in more): 20 videos of mixed
+lengths, one killed mid-video in its first attempt and one in every attempt (their
+actors die as the OOM killer would end them), a corrupt file, an oversized one and a
+truncated one. Then a job stopped by SIGINT and by SIGTERM in a subprocess, each resumed;
+and a job writing to an S3-compatible server on loopback. The layout's own rules are
+tested without Ray in tests/test_corpus_layout.py; losing a node in
+tests/test_corpus_cluster.py.
 """
 
 from __future__ import annotations
 
-import builtins
 import contextlib
 import io
 import json
+import os
 import re
+import signal
+import socket
+import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -22,60 +28,37 @@ import pytest
 
 import taptr
 from taptr.cli.main import main
-from taptr.corpus.inputs import QuerySpec, video_key
-from taptr.corpus.manifest import read_manifest
-from taptr.corpus.progress import Progress, Summary
 from taptr.io.video import read_video, write_video
+from tests.helpers import panning_clip, write_truncated_clip
 
 pytest.importorskip("ray")
 pa = pytest.importorskip("pyarrow")
 pq = pytest.importorskip("pyarrow.parquet")
 
-DOCS = Path(__file__).resolve().parents[1] / "docs" / "CORPUS.md"
 LENGTHS = [3, 4, 5, 6, 7, 8, 9, 10, 11, 12] * 2
 OWN_POINTS = [[0, 10.0, 12.0], [2, 30.5, 20.0], [1, 5.0, 5.0]]
 
 
-def _pan(count: int, speed: int, seed: int) -> np.ndarray:
-    """(count, 32, 48, 3) frames of a random texture panning left by ``speed`` pixels a frame."""
-    texture = np.random.default_rng(seed).integers(0, 256, (32, 48 + count * speed, 3), np.uint8)
-    return np.stack([texture[:, speed * t : speed * t + 48] for t in range(count)])
-
-
 @pytest.fixture(scope="module")
 def corpus(tmp_path_factory):
-    """A manifest of 22 videos: 20 good, a corrupt one and an oversized one."""
+    """A manifest of 23 videos: 20 good, a corrupt, an oversized and a truncated one."""
     folder = tmp_path_factory.mktemp("corpus")
     rows = ["path,id,points"]
     for index, count in enumerate(LENGTHS):
-        write_video(folder / f"clip{index:02d}.mp4", _pan(count, 1 + index % 3, index), fps=10)
+        write_video(
+            folder / f"clip{index:02d}.mp4", panning_clip(count, 1 + index % 3, index), fps=10
+        )
         points = json.dumps(OWN_POINTS) if index % 4 == 1 else ""
         rows.append(f'clip{index:02d}.mp4,v{index:02d},"{points}"')
-    write_video(folder / "long.mp4", _pan(14, 1, 99), fps=10)  # over --max-video-frames 12
+    write_video(folder / "long.mp4", panning_clip(26, 1, 99), fps=10)  # over --max-video-frames 25
     (folder / "corrupt.mp4").write_bytes(b"\x00\x00\x00\x18ftypmp42 but not a video")
-    rows += ["corrupt.mp4,corrupt,", "long.mp4,long,"]
+    write_truncated_clip(folder / "cut.mp4")
+    rows += ["corrupt.mp4,corrupt,", "long.mp4,long,", "cut.mp4,cut,"]
     (folder / "corpus.csv").write_text("\n".join(rows) + "\n", encoding="utf-8")
     return folder
 
 
-@pytest.fixture(scope="module")
-def checkpoint(tiny_checkpoint):
-    return tiny_checkpoint
-
-
-@pytest.fixture
-def local_ray(monkeypatch):
-    import ray
-
-    # Ray's memory monitor kills workers when the whole machine is short of memory, which
-    # on a shared test machine is other processes' doing; the deaths tested here are ours
-    monkeypatch.setenv("RAY_memory_monitor_refresh_ms", "0")
-    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
-    yield
-    ray.shutdown()
-
-
-def _track_corpus(corpus: Path, checkpoint: Path, out: Path) -> tuple[int, str]:
+def _track_corpus(corpus: Path, checkpoint: Path, out: Path, *extra: str) -> tuple[int, str]:
     printed = io.StringIO()
     with contextlib.redirect_stdout(printed):
         status = main(
@@ -95,215 +78,256 @@ def _track_corpus(corpus: Path, checkpoint: Path, out: Path) -> tuple[int, str]:
                 "--attempts",
                 "2",
                 "--max-video-frames",
-                "12",
+                "30",
+                "--part-videos",
+                "4",
                 "--progress-every",
                 "0",
+                *extra,
             ]
         )
     return status, printed.getvalue()
 
 
-def test_a_corpus_on_local_ray_survives_killed_actors_and_resumes(
-    corpus, checkpoint, tmp_path, monkeypatch, local_ray
+@pytest.fixture
+def quiet_ray(monkeypatch):
+    # Ray's memory monitor kills workers when the whole machine is short of memory, which
+    # on a shared test machine is other processes' doing; the deaths tested here are ours
+    monkeypatch.setenv("RAY_memory_monitor_refresh_ms", "0")
+
+
+def test_a_corpus_survives_killed_actors_records_every_failure_and_resumes(
+    corpus, tiny_checkpoint, tmp_path, monkeypatch, quiet_ray
 ):
     out = tmp_path / "out"
     monkeypatch.setenv("TAPTR_CORPUS_KILL", "v07:1")
-    own_print = builtins.print
-    status, printed = _track_corpus(corpus, checkpoint, out)
+    status, printed = _track_corpus(corpus, tiny_checkpoint, out, "--max-video-frames", "25")
     assert status == 2, printed
-    assert builtins.print is own_print  # Ray Data's progress bars swap it; it is put back
-    # v07's actor died in its first attempt: it was done in the second
-    assert (
-        "22 videos: 20 done (1 after their worker died), 0 skipped (already done), 2 failed"
-        in printed
-    )
-    assert re.search(r"corpus: 22/22 videos \(2 failed\), [\d.]+ frames/s", printed)
+    # v07's actor died in its first attempt: done in its second
+    assert re.search(r"23 videos: 20 done \(\d+ after their worker died\), 0 skipped", printed)
+    assert "3 failed in" in printed
+    assert re.search(r"corpus: 23/23 videos \(3 failed\), [\d.]+ frames/s, done", printed)
 
-    # every good video complete exactly once, v07 too (its first actor died mid-video)
-    assert len(list((out / "tracks").iterdir())) == 20
+    # every good video complete exactly once, v07 too; many videos to a part
     table = pq.read_table(out / "tracks")
-    predictor = taptr.Predictor.from_pretrained(checkpoint, device="cpu")
-    for index, count in enumerate(LENGTHS):
-        rows = table.filter(pa.compute.equal(table["video_id"], f"v{index:02d}")).to_pylist()
+    index = pq.read_table(out / "_index")
+    assert sorted(index["video_id"].to_pylist()) == sorted(
+        [f"v{i:02d}" for i in range(20)] + ["corrupt", "long", "cut"]
+    )
+    assert len(list((out / "tracks").iterdir())) < 20
+    predictor = taptr.Predictor.from_pretrained(tiny_checkpoint, device="cpu")
+    for index_, count in enumerate(LENGTHS):
+        rows = table.filter(pa.compute.equal(table["video_id"], f"v{index_:02d}")).to_pylist()
         assert [row["point_id"] for row in rows] == list(range(len(rows)))
         queries = np.array([row["query"] for row in rows], np.float32)
-        if index % 4 == 1:
+        if index_ % 4 == 1:
             np.testing.assert_array_equal(queries, np.float32(OWN_POINTS))
         else:
             assert len(rows) == 4  # --grid 2
-        expected = predictor.track(read_video(corpus / f"clip{index:02d}.mp4"), queries)
+        expected = predictor.track(read_video(corpus / f"clip{index_:02d}.mp4"), queries)
         tracks = np.array([row["positions"] for row in rows], np.float32).transpose(1, 0, 2)
         visibility = np.array([row["visibility"] for row in rows]).T
-        assert tracks.shape == (count, len(rows), 2) and rows[0]["num_frames"] == count
+        assert tracks.shape == (count, len(rows), 2)
+        assert (rows[0]["num_frames"], rows[0]["declared_frames"], rows[0]["decoded_frames"]) == (
+            count,
+            count,
+            count,
+        )
         # float32 noise only: the stream encodes chunks of frames where track encodes windows
         np.testing.assert_allclose(tracks, expected.tracks[0].numpy(), atol=5e-3, rtol=0)
         np.testing.assert_array_equal(visibility, expected.visibility[0].numpy())
-        assert rows[0]["model"] == str(checkpoint) and len(rows[0]["settings_digest"]) == 16
+        assert rows[0]["model"] == str(tiny_checkpoint) and len(rows[0]["settings_digest"]) == 16
 
-    # bad videos recorded with their one-line errors, the others went on
+    # bad videos recorded with their one-line errors and frame counts
     failures = {row["video_id"]: row for row in pq.read_table(out / "failures").to_pylist()}
-    assert set(failures) == {"corrupt", "long"}
+    assert set(failures) == {"corrupt", "long", "cut"}
     assert "cannot read video" in failures["corrupt"]["error"]
-    assert "declares 14 frames, more than the limit of 12" in failures["long"]["error"]
+    assert failures["corrupt"]["attempts"] == 0  # it never reached the model
+    assert "declares 26 frames, more than the limit of 25" in failures["long"]["error"]
+    assert (failures["long"]["declared_frames"], failures["long"]["attempts"]) == (26, 0)
+    cut = failures["cut"]
+    assert (cut["declared_frames"], cut["attempts"]) == (24, 1) and cut["decoded_frames"] < 24
+    assert f"decoded {cut['decoded_frames']} of the 24 frames" in cut["error"]
     assert all("\n" not in row["error"] for row in failures.values())
-    assert not (out / "_staging").exists() and not (out / "_attempts").exists()
     summary = json.loads((out / "summary.json").read_text())
-    assert (summary["done"], summary["skipped"], len(summary["failed"])) == (20, 0, 2)
-    assert summary["retried"] == 1
+    assert (summary["state"], summary["done"], summary["failed"]) == ("finished", 20, 3)
+    assert summary["retried"] >= 1 and summary["left"] == 0
+    assert not list((out / "_staging").iterdir())
 
-    # a rerun skips them all: finished, or failed with the same settings
+    # a rerun skips them all without starting Ray; --accept-truncated keeps the cut one
     monkeypatch.delenv("TAPTR_CORPUS_KILL")
-    status, printed = _track_corpus(corpus, checkpoint, out)
+    started = time.perf_counter()
+    status, printed = _track_corpus(corpus, tiny_checkpoint, out, "--max-video-frames", "25")
+    assert time.perf_counter() - started < 20
     assert status == 2
-    assert "22 videos: 0 done, 20 skipped (already done), 0 failed, 2 failed before" in printed
+    assert "23 videos: 0 done, 20 skipped (already done), 0 failed, 3 failed before" in printed
     assert "--retry-failed tracks them again" in printed
-    assert len(list((out / "tracks").iterdir())) == 20
-
-
-def test_a_video_whose_worker_keeps_dying_becomes_a_failure_row(corpus, tmp_path):
-    from taptr.corpus.pipeline import CorpusOptions, _todo
-    from taptr.corpus.probe import probe_video
-    from taptr.corpus.results import ResultLayout, read_failures
-    from taptr.corpus.worker import TrackOptions, VideoTracker
-
-    layout = ResultLayout(str(tmp_path))
-    layout.prepare()
-    row = {"video_id": "v", "path": str(corpus / "clip00.mp4"), "key": "k", "digest": "d"}
-    row = probe_video({**row, "queries": QuerySpec(grid=2).to_json()}, None)
-    assert row["error"] == "" and row["num_frames"] == 3
-    for _ in range(2):  # two attempts whose actor died (as os._exit leaves them)
-        layout.start_attempt("k", "d")
-    tracker = VideoTracker(lambda: None, TrackOptions(str(tmp_path), max_attempts=2))
-    outcome = tracker.track_one(row)
-    assert outcome["status"] == "failed"
-    assert outcome["error"] == "its worker died in each of 2 attempts (killed or out of memory)"
-    (failure,) = read_failures(tmp_path).to_pylist()
-    assert (failure["video_id"], failure["attempts"]) == ("v", 2)
-    # the next run leaves it, unless asked to try again
-    summary = Summary(total=1)
-    assert _todo([row], layout, CorpusOptions(out=str(tmp_path)), summary) == []
-    assert summary.failed_before == 1
-    retry = CorpusOptions(out=str(tmp_path), retry_failed=True)
-    assert _todo([row], layout, retry, Summary(total=1)) == [row]
-
-
-def test_the_documented_schema_is_the_written_one(tmp_path):
-    from taptr.corpus.results import ResultLayout, VideoTracks, tracks_schema
-
-    layout = ResultLayout(str(tmp_path))
-    layout.prepare()
-    rng = np.random.default_rng(0)
-    video = VideoTracks(
-        "clips/a.mp4",
-        "/data/clips/a.mp4",
-        np.float32([[0, 1, 2], [3, 4, 5]]),
-        rng.random((7, 2, 2), np.float32),
-        rng.random((7, 2)) > 0.5,
-        (32, 48),
-        None,
-        "tiny",
-        "0123456789abcdef",
+    status, printed = _track_corpus(
+        corpus, tiny_checkpoint, out, "--retry-failed", "--accept-truncated"
     )
-    written = layout.write_tracks(video_key(video.video_id), video)
-    assert written.parent == tmp_path / "tracks" and written.name.endswith(
-        ".0123456789abcdef.parquet"
+    assert "23 videos: 2 done" in printed  # cut and long (limit now 30); corrupt fails again
+    tracks = pq.read_table(out / "tracks")
+    cut_rows = tracks.filter(pa.compute.equal(tracks["video_id"], "cut")).to_pylist()
+    assert cut_rows[0]["declared_frames"] == 24 and cut_rows[0]["decoded_frames"] < 24
+    ids = tracks["video_id"].to_pylist()
+    assert all(ids.count(f"v{i:02d}") in (3, 4) for i in range(20))  # each video once
+    assert [row["video_id"] for row in pq.read_table(out / "failures").to_pylist()] == ["corrupt"]
+
+
+def _descendants(pid: int) -> set[int]:
+    """Process ids below ``pid``, read from /proc."""
+    parents = {}
+    for entry in Path("/proc").iterdir():
+        with contextlib.suppress(OSError, ValueError, IndexError):
+            fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+            parents[int(entry.name)] = int(fields[1])
+    found, frontier = set(), {pid}
+    while frontier:
+        frontier = {child for child, parent in parents.items() if parent in frontier} - found
+        found |= frontier
+    return found
+
+
+def _running(pid: int) -> bool:
+    with contextlib.suppress(OSError, IndexError):
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+        return state != "Z"
+    return False
+
+
+def _start_job(corpus: Path, out: Path) -> subprocess.Popen:
+    command = [
+        sys.executable, "-m", "taptr.cli.main", "track-corpus", str(corpus), "--grid", "2",
+        "--checkpoint", "tiny", "--device", "cpu", "--out", str(out), "--actors", "1",
+        "--part-videos", "1", "--progress-every", "0",
+    ]  # fmt: skip
+    environment = {**os.environ, "RAY_memory_monitor_refresh_ms": "0"}
+    return subprocess.Popen(
+        command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=environment
     )
-    frame = __import__("pandas").read_parquet(tmp_path / "tracks")
-    assert list(frame.columns) == tracks_schema().names
-    np.testing.assert_array_equal(np.stack(frame["positions"][1]), video.tracks[:, 1])
-    np.testing.assert_array_equal(frame["visibility"][0], video.visibility[:, 0])
-    assert frame["fps"].isna().all() and list(frame["point_id"]) == [0, 1]
-    documented = DOCS.read_text(encoding="utf-8")
-    for name in tracks_schema().names:
-        assert f"| `{name}` |" in documented, name
 
 
-def test_duckdb_reads_the_dataset_as_the_docs_query_it(tmp_path):
-    duckdb = pytest.importorskip("duckdb")
-    from taptr.corpus.results import ResultLayout, VideoTracks
+def _parts(out: Path) -> int:
+    return len(list((out / "_index").iterdir())) if (out / "_index").is_dir() else 0
 
-    layout = ResultLayout(str(tmp_path))
-    layout.prepare()
-    for name, frames in (("a", 4), ("b", 6)):
-        tracks = np.zeros((frames, 3, 2), np.float32)
-        visible = np.ones((frames, 3), bool)
-        visible[0, 1] = False
-        video = VideoTracks(
-            name, name, np.zeros((3, 3), np.float32), tracks, visible, (8, 8), 10.0, "m", "d"
-        )
-        layout.write_tracks(video_key(name), video)
-    query = (
-        "SELECT video_id, count(*) AS points, "
-        "avg(list_sum(CAST(visibility AS INTEGER[])) / num_frames) AS visible "
-        f"FROM '{tmp_path}/tracks/*.parquet' GROUP BY video_id ORDER BY video_id"
+
+def _stop_after_a_part(job: subprocess.Popen, out: Path, number: int) -> tuple[str, str]:
+    """Sends signal ``number`` once the job has written a part; checks no process is left."""
+    before = _parts(out)
+    deadline = time.monotonic() + 240
+    while time.monotonic() < deadline and job.poll() is None and _parts(out) == before:
+        time.sleep(0.2)
+    family = _descendants(job.pid)
+    assert family  # Ray's processes run below the job's
+    job.send_signal(number)
+    stdout, stderr = job.communicate(timeout=120)
+    time.sleep(2)
+    alive = [pid for pid in family if _running(pid)]
+    assert not alive, [Path(f"/proc/{pid}/cmdline").read_bytes()[:80] for pid in alive]
+    return stdout, stderr
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads processes from /proc")
+def test_sigint_and_sigterm_stop_the_job_cleanly_and_a_rerun_finishes_it(tiny_checkpoint, tmp_path):
+    folder = tmp_path / "clips"
+    folder.mkdir()
+    for index in range(12):
+        write_video(folder / f"c{index:02d}.mp4", panning_clip(10, 1, index), fps=10)
+    out = tmp_path / "out"
+    for number, status in ((signal.SIGINT, 130), (signal.SIGTERM, 143)):
+        job = _start_job(folder, out)
+        stdout, stderr = _stop_after_a_part(job, out, number)
+        assert job.returncode == status, stderr
+        assert "Traceback" not in stderr and "Fatal" not in stderr and "SIGABRT" not in stderr
+        assert stderr.count("UNTRAINED weights") == 1  # the driver's, not one per actor
+        summary = json.loads((out / "summary.json").read_text())
+        assert summary["state"] == "interrupted", stdout
+        assert "left for the next run" in stdout or summary["left"] == 0
+    job = _start_job(folder, out)
+    stdout, stderr = job.communicate(timeout=300)
+    assert job.returncode == 0, stderr
+    assert "12 videos: " in stdout and " 0 failed" in stdout
+    ids = pq.read_table(out / "tracks")["video_id"].to_pylist()
+    assert sorted(set(ids)) == [str(folder / f"c{i:02d}.mp4") for i in range(12)]
+    assert all(ids.count(video) == 4 for video in set(ids))  # each video's rows once
+    assert json.loads((out / "summary.json").read_text())["state"] == "finished"
+
+
+@pytest.fixture
+def s3_server(monkeypatch):
+    """An S3-compatible server (moto) on loopback with a bucket, and its credentials."""
+    pytest.importorskip("moto")
+    import pyarrow.fs as pafs
+
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    server = subprocess.Popen(
+        [sys.executable, "-m", "moto.server", "-p", str(port)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
     )
-    rows = duckdb.sql(query).fetchall()
-    assert [row[:2] for row in rows] == [("a", 3), ("b", 3)]
-    np.testing.assert_allclose([row[2] for row in rows], [11 / 12, 17 / 18])
+    try:
+        for _ in range(100):
+            with contextlib.suppress(OSError):
+                socket.create_connection(("127.0.0.1", port), 0.2).close()
+                break
+            time.sleep(0.1)
+        else:
+            pytest.skip("the S3 server did not start")
+        for name, value in (
+            ("AWS_ACCESS_KEY_ID", "test"),
+            ("AWS_SECRET_ACCESS_KEY", "test"),
+            ("AWS_DEFAULT_REGION", "us-east-1"),
+        ):
+            monkeypatch.setenv(name, value)
+        endpoint = f"endpoint_override=127.0.0.1:{port}&scheme=http"
+        pafs.FileSystem.from_uri(f"s3://corpus?{endpoint}&allow_bucket_creation=true")[
+            0
+        ].create_dir("corpus")
+        yield endpoint
+    finally:
+        server.terminate()
+        server.wait(timeout=10)
 
 
-def test_manifests_in_csv_and_parquet(tmp_path):
-    default = QuerySpec(grid=3)
-    table = pa.table(
-        {
-            "path": ["a.mp4", "/abs/b.mp4"],
-            "id": ["first", None],
-            "points": [[[0.0, 1.0, 2.0]], None],
-        }
-    )
-    pq.write_table(table, tmp_path / "m.parquet")
-    first, second = read_manifest(tmp_path / "m.parquet", default)
-    assert (first.video_id, first.path) == ("first", str(tmp_path / "a.mp4"))
-    assert first.queries.points == ((0.0, 1.0, 2.0),)
-    assert (second.video_id, second.path, second.queries) == ("/abs/b.mp4", "/abs/b.mp4", default)
-    (tmp_path / "m.csv").write_text("path,grid,query_frame\nc.mp4,4,2\nd.mp4,,\n")
-    with pytest.raises(ValueError, match="row 2: no points, grid or mask"):
-        read_manifest(tmp_path / "m.csv", None)
-    assert read_manifest(tmp_path / "m.csv", default)[0].queries == QuerySpec(grid=4, query_frame=2)
-    (tmp_path / "bad.csv").write_text("path,colour\nc.mp4,red\n")
-    with pytest.raises(ValueError, match=r"unknown columns \['colour'\]"):
-        read_manifest(tmp_path / "bad.csv", default)
-    (tmp_path / "nan.csv").write_text('path,points\nc.mp4,"[[0, 1]]"\n')
-    with pytest.raises(ValueError, match="row 1: points must be rows of three numbers"):
-        read_manifest(tmp_path / "nan.csv", default)
+def test_results_go_to_an_object_store(corpus, tiny_checkpoint, s3_server, quiet_ray):
+    import pandas as pd
+    import pyarrow.fs as pafs
 
-
-def test_two_ids_for_one_name_and_keys_that_stay_apart():
-    from taptr.corpus.inputs import CorpusVideo
-    from taptr.corpus.pipeline import CorpusOptions, track_corpus
-
-    assert video_key("a/b c.mp4") != video_key("a_b c.mp4")
-    assert "." not in video_key("a/b.c.mp4").rsplit("-", 1)[1]
-    twins = [
-        CorpusVideo("x", "a.mp4", QuerySpec(grid=2)),
-        CorpusVideo("x", "b.mp4", QuerySpec(grid=2)),
+    uri = f"s3://corpus/results?{s3_server}"
+    printed = io.StringIO()
+    argv = ["track-corpus", str(corpus / "clip00.mp4"), str(corpus / "clip01.mp4"),
+            str(corpus / "corrupt.mp4"), "--grid", "2", "--checkpoint", str(tiny_checkpoint),
+            "--device", "cpu", "--out", uri, "--actors", "1"]  # fmt: skip
+    with contextlib.redirect_stdout(printed):
+        assert main(argv) == 2
+    assert "3 videos: 2 done, 0 skipped (already done), 1 failed" in printed.getvalue()
+    assert "results in s3://corpus/results/tracks?" in printed.getvalue()
+    store, root = pafs.FileSystem.from_uri(uri)
+    tracks = pd.read_parquet(f"{root}/tracks", filesystem=store)
+    assert sorted(set(tracks["video_id"])) == [
+        str(corpus / "clip00.mp4"),
+        str(corpus / "clip01.mp4"),
     ]
-    with pytest.raises(ValueError, match="the id 'x' names two videos"):
-        track_corpus(twins, lambda: None, CorpusOptions(out="unused"))
-
-
-def test_progress_lines_and_the_summary():
-    summary = Summary(total=5, skipped=1)
-    lines = []
-    progress = Progress(summary, 4, every=3600, print_line=lambda text, **_: lines.append(text))
-    progress.update({"video_id": "a", "status": "done", "frames": 30, "error": "", "seconds": 2})
-    failed = {"video_id": "b", "status": "failed", "frames": 0, "error": "no frames", "seconds": 1}
-    progress.update(failed)
-    assert lines == []  # not yet time for a line
-    progress.update({"video_id": "c", "status": "done", "frames": 10, "error": "", "seconds": 1})
-    progress.update({"video_id": "d", "status": "done", "frames": 20, "error": "", "seconds": 1})
-    assert len(lines) == 1 and lines[0].startswith("corpus: 4/4 videos (1 failed), ")
-    assert lines[0].endswith("about 0.0s left")
-    summary.seconds = 10.0
-    assert summary.line() == (
-        "5 videos: 3 done, 1 skipped (already done), 1 failed in 10.0s; 0.3 videos/s, 6 frames/s"
+    assert len(tracks) == 8 and list(tracks["decoded_frames"].unique()) == [3, 4]
+    assert len(pd.read_parquet(f"{root}/failures", filesystem=store)) == 1
+    with contextlib.redirect_stdout(printed):
+        assert main(argv) == 2  # a rerun reads the index from the store: nothing to do
+    assert "3 videos: 0 done, 2 skipped (already done), 0 failed, 1 failed before" in (
+        printed.getvalue()
     )
-    assert summary.as_dict()["failed"] == {"b": "no frames"}
-    assert summary.actor_seconds == 4  # the failed video's second is not a tracked frame's
 
 
-def test_without_ray_the_command_says_how_to_install_it(monkeypatch, tmp_path, capsys):
-    monkeypatch.setitem(sys.modules, "ray", None)
-    status = main(["track-corpus", str(tmp_path), "--grid", "2", "--out", str(tmp_path / "o")])
-    assert status == 2
-    assert 'pip install "taptr[ray]"' in capsys.readouterr().err
+def test_impossible_requests_fail_in_seconds_with_the_numbers(corpus, tmp_path, capsys, quiet_ray):
+    argv = ["track-corpus", str(corpus / "clip00.mp4"), "--grid", "2", "--checkpoint", "tiny",
+            "--out", str(tmp_path / "out")]  # fmt: skip
+    started = time.perf_counter()
+    assert main([*argv, "--address", "127.0.0.1:1"]) == 2
+    assert "cannot reach the Ray cluster at 127.0.0.1:1" in capsys.readouterr().err
+    assert time.perf_counter() - started < 30
+    assert main([*argv, "--gpus-per-actor", "1"]) == 2
+    error = capsys.readouterr().err
+    assert "no node of the cluster can hold one tracker actor (1 CPU, 1 GPU" in error
+    assert "no GPU" in error
+    assert not (tmp_path / "out" / "tracks").exists()  # refused before any work

@@ -147,7 +147,9 @@ def test_two_processes_write_the_same_files_as_one(clips, checkpoint, tmp_path):
         np.testing.assert_array_equal(one.visibility, two.visibility)
 
 
-def test_a_truncated_video_is_tracked_in_memory_after_a_warning(checkpoint, tmp_path, caplog):
+def test_an_accepted_truncated_video_is_tracked_in_memory_after_a_warning(
+    checkpoint, tmp_path, caplog
+):
     import logging
 
     import av
@@ -159,6 +161,7 @@ def test_a_truncated_video_is_tracked_in_memory_after_a_warning(checkpoint, tmp_
     truncated = tmp_path / "truncated.mp4"
     truncated.write_bytes(path.read_bytes()[:cut])  # declares 12 frames, decodes 5
     args = ["track", str(truncated), "--grid", "2", "--checkpoint", str(checkpoint)]
+    args.append("--accept-truncated")  # without it: an error (the next test)
     with caplog.at_level(logging.WARNING), pytest.warns(UserWarning, match="declares 12"):
         assert main([*args, "--out", str(tmp_path / "o")]) == 0
     assert "tracking it in memory instead" in caplog.text
@@ -212,3 +215,16 @@ def test_edit_streams_and_equals_the_in_memory_edit(clips, checkpoint, tmp_path,
     assert difference.mean() < 0.05 and np.percentile(difference, 99) <= 2  # float32 noise
     pasted = streamed[query_frame].astype(int) - video[query_frame].astype(int)
     assert np.abs(pasted).max() > 100
+
+
+def test_a_video_cut_short_is_an_error_unless_accepted(checkpoint, tmp_path, capsys):
+    from tests.helpers import write_truncated_clip
+
+    decoded = write_truncated_clip(tmp_path / "cut.mp4")
+    args = ["track", str(tmp_path / "cut.mp4"), "--grid", "2", "--checkpoint", str(checkpoint)]
+    assert main([*args, "--out", str(tmp_path / "refused")]) == 2
+    error = capsys.readouterr().err
+    assert f"decoded {decoded} of the 24 frames its container declares" in error
+    assert "--accept-truncated" in error and not (tmp_path / "refused" / "tracks.npz").exists()
+    assert main([*args, "--out", str(tmp_path / "kept"), "--accept-truncated"]) == 0
+    assert load_tracks_npz(tmp_path / "kept" / "tracks.npz").tracks.shape[0] == decoded

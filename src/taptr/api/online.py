@@ -42,7 +42,22 @@ from taptr.model.sliding_window import QuerySet, TrackerState
 
 
 class FrameCountError(ValueError):
-    """A stream brought more or fewer frames than `OnlineTracker.start` was told."""
+    """A stream brought more or fewer frames than `OnlineTracker.start` was told.
+
+    Attributes:
+        seen: frames received (with the chunk that went past the count, when too many).
+        declared: frames `OnlineTracker.start` was told.
+    """
+
+    def __init__(self, message: str, *, seen: int, declared: int) -> None:
+        super().__init__(message)
+        self.seen = seen
+        self.declared = declared
+
+    @property
+    def short(self) -> bool:
+        """Whether the stream ended before the declared count (a truncated file)."""
+        return self.seen < self.declared
 
 
 @dataclass
@@ -195,7 +210,11 @@ class OnlineTracker:
         elif size != state.frame_size:
             raise ValueError(f"frame size changed from {state.frame_size} to {size}")
         if state.num_frames is not None and state.num_seen + chunk.shape[0] > state.num_frames:
-            raise FrameCountError(f"more frames than the declared {state.num_frames}")
+            raise FrameCountError(
+                f"more frames than the declared {state.num_frames}",
+                seen=state.num_seen + chunk.shape[0],
+                declared=state.num_frames,
+            )
         state.encoded.add(state.num_seen, self.predictor.prepare(chunk))
         state.num_seen += chunk.shape[0]
         while True:
@@ -213,7 +232,9 @@ class OnlineTracker:
             raise ValueError("the stream has no frames")
         if state.num_frames is not None and state.num_seen != state.num_frames:
             raise FrameCountError(
-                f"the stream ended after {state.num_seen} of {state.num_frames} declared frames"
+                f"the stream ended after {state.num_seen} of {state.num_frames} declared frames",
+                seen=state.num_seen,
+                declared=state.num_frames,
             )
         for first, last in self.engine.remaining(state.tracker, state.num_seen):
             self._decode(state, first, last)

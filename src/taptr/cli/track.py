@@ -30,6 +30,7 @@ from taptr.cli.points import (
 from taptr.cli.result_settings import SETTINGS_NAME, made_with, track_settings, write_settings
 from taptr.cli.run_memory import check_run_memory
 from taptr.io.atomic import check_result_names
+from taptr.io.frame_count import ACCEPT_TRUNCATED, check_decoded
 
 if TYPE_CHECKING:
     from taptr.api.predictor import Predictor
@@ -72,6 +73,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         action="store_true",
         help="track every video again, even those whose folder already holds a run with "
         "the same settings (recorded in its settings.json)",
+    )
+    parser.add_argument(
+        ACCEPT_TRUNCATED,
+        action="store_true",
+        help="track a video that decodes to fewer frames than its container declares (cut "
+        "short or damaged) through the frames that decode; by default it is an error",
     )
     add_model_arguments(parser)
     parser.set_defaults(func=run)
@@ -186,6 +193,10 @@ def track_video(
                 args, predictor, (video, out), queries, info, declared, settings
             )
         except FrameCountError as error:  # the container's frame count was wrong
+            if error.short:  # cut short: an error unless asked to keep what decodes
+                check_decoded(
+                    video, error.seen, info.num_frames, args.max_frames, args.accept_truncated
+                )
             logger.warning("%s: %s; tracking it in memory instead", video, error)
     return _track_in_memory(args, predictor, (video, out), listed, info, settings)
 
@@ -281,6 +292,7 @@ def _track_in_memory(
 
     video, out = paths
     frames = read_video(video, max_frames=args.max_frames)
+    check_decoded(video, len(frames), info.num_frames, args.max_frames, args.accept_truncated)
     queries = listed if listed is not None else build_queries(args, *frames.shape[:3])
     check_run_memory(
         args,

@@ -1,24 +1,33 @@
-"""``taptr track-corpus``: track a corpus of videos as a Ray Data job (docs/CORPUS.md)."""
+"""``taptr track-corpus``: track a corpus of videos on a Ray cluster (docs/CORPUS.md)."""
 
 from __future__ import annotations
 
 import argparse
 import copy
 import functools
-import hashlib
-import json
 from typing import TYPE_CHECKING
 
 from taptr.cli.model_options import add_model_arguments, check_model_arguments, load_predictor
 from taptr.cli.options import check_at_least, check_output_folder
 from taptr.cli.points import add_query_arguments, listed_points
+from taptr.io.frame_count import ACCEPT_TRUNCATED
 
 if TYPE_CHECKING:
-    from taptr.api.predictor import Predictor
     from taptr.corpus.inputs import CorpusVideo, QuerySpec
+    from taptr.corpus.pipeline import CorpusOptions
 
-MAX_LISTED_FAILURES = 20
-"""Failed videos named in the closing lines (all of them are in OUT/failures/)."""
+DESCRIPTION = (
+    "Tracks every video of a corpus on a Ray cluster (or a local Ray instance): tracker "
+    "actors, one model each (one GPU each where the cluster has GPUs), read each video's "
+    "header, stream its frames through the tracker and write the rows of many videos at "
+    "once as a part of OUT/tracks/, a Parquet dataset (one row per video and point; schema "
+    "in docs/CORPUS.md). A video counts as done once its part is written and read back; "
+    "videos that cannot be tracked are recorded in OUT/failures/ with their error while "
+    "the rest go on. A rerun skips the videos done with the same settings, and those "
+    "recorded as failed with them (see --retry-failed). OUT may be a local folder or a URI "
+    "that pyarrow opens (s3://bucket/prefix, gs://...). Without RAY_ADDRESS or --address, "
+    'a local Ray instance is started. Needs the extra: pip install -e ".[ray]".'
+)
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -26,16 +35,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "track-corpus",
         help="track a corpus of videos on a Ray cluster or a local Ray instance",
-        description="Tracks every video of a corpus as a Ray Data job: CPU tasks read and "
-        "check each video's header, actors holding one model each (one GPU each where the "
-        "cluster has GPUs) stream its frames through the tracker. Results go to "
-        "OUT/tracks/ as a Parquet dataset (one row per video and point; schema in "
-        "docs/CORPUS.md), a video's rows appearing all at once; videos that cannot be "
-        "tracked are recorded in OUT/failures/ with their error while the rest go on. A "
-        "rerun skips the videos whose results were made with the same settings, and those "
-        "recorded as failed with them (see --retry-failed). Without "
-        "RAY_ADDRESS or --address, a local Ray instance is started. Needs the extra: "
-        'pip install "taptr[ray]".',
+        description=DESCRIPTION,
     )
     parser.add_argument(
         "inputs",
@@ -45,11 +45,20 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "'query_frame' columns)",
     )
     add_query_arguments(parser, required=False)
+    _add_result_arguments(parser)
+    _add_cluster_arguments(parser)
+    add_model_arguments(parser)
+    parser.set_defaults(func=run, trajectories=False)
+
+
+def _add_result_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--backward", action="store_true", help="also track before each query frame"
     )
     parser.add_argument(
-        "--out", default="corpus-results", help="output folder (default: corpus-results)"
+        "--out",
+        default="corpus-results",
+        help="output folder or URI (s3://bucket/prefix; default: corpus-results)",
     )
     parser.add_argument(
         "--overwrite", action="store_true", help="track videos already done with these settings"
@@ -61,11 +70,56 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "leaves them by default)",
     )
     parser.add_argument(
+        ACCEPT_TRUNCATED,
+        action="store_true",
+        help="keep the tracks of a video that decodes to fewer frames than its container "
+        "declares (by default it is recorded as failed, with both counts)",
+    )
+    parser.add_argument(
+        "--max-video-frames",
+        type=int,
+        default=None,
+        metavar="N",
+        help="record videos that declare more than N frames as failed instead of tracking them",
+    )
+    parser.add_argument(
+        "--part-videos",
+        type=int,
+        default=1000,
+        metavar="N",
+        help="videos in one part of the dataset at most (default: 1000; parts are also "
+        "written every --part-seconds and at 128 MiB)",
+    )
+    parser.add_argument(
+        "--part-seconds",
+        type=float,
+        default=120.0,
+        metavar="SECONDS",
+        help="an actor writes its part at least this often, which bounds the work a dead "
+        "actor loses (default: 120)",
+    )
+    parser.add_argument(
+        "--migrate",
+        action="store_true",
+        help="first move results of taptr 0.1's layout (one file per video) in OUT into "
+        "parts (docs/CORPUS.md)",
+    )
+    parser.add_argument(
+        "--progress-every",
+        type=float,
+        default=30.0,
+        metavar="SECONDS",
+        help="seconds between progress lines (default: 30)",
+    )
+
+
+def _add_cluster_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
         "--actors",
         type=int,
         default=None,
-        help="tracker actors (default: one per GPU of the cluster, else one per "
-        "--cpus-per-actor CPUs)",
+        help="tracker actors (default: as many as the cluster holds: one per GPU, else "
+        "one per --cpus-per-actor CPUs, within memory)",
     )
     parser.add_argument(
         "--cpus-per-actor",
@@ -81,92 +135,124 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "cluster has GPUs, else 0)",
     )
     parser.add_argument(
+        "--memory-per-actor",
+        type=float,
+        default=None,
+        metavar="GIB",
+        help="memory each actor reserves (default: estimated from the model for a 10 s "
+        "720p clip with 256 points)",
+    )
+    parser.add_argument(
         "--attempts",
         type=int,
         default=3,
-        help="attempts at a video whose actor dies (killed, out of memory) before it is "
-        "recorded as failed (default: 3)",
+        help="deaths of its actor while tracking a video (killed, out of memory, node "
+        "lost) before the video is recorded as failed (default: 3)",
     )
     parser.add_argument(
-        "--max-video-frames",
-        type=int,
-        default=None,
-        metavar="N",
-        help="record videos that declare more than N frames as failed instead of tracking them",
-    )
-    parser.add_argument(
-        "--progress-every",
+        "--actor-start-timeout",
         type=float,
-        default=30.0,
+        default=300.0,
         metavar="SECONDS",
-        help="seconds between progress lines (default: 30)",
+        help="drop an actor that cannot start within this time, e.g. when its node is lost "
+        "and the cluster cannot hold another (default: 300)",
     )
     parser.add_argument(
         "--address",
         default=None,
-        help="Ray cluster to join, e.g. auto or ray://HEAD:10001 (default: RAY_ADDRESS, "
-        "else a local instance)",
+        help="Ray cluster to join, e.g. auto, HEAD:6379 or ray://HEAD:10001 (default: "
+        "RAY_ADDRESS, else a local instance)",
     )
-    add_model_arguments(parser)
-    parser.set_defaults(func=run, trajectories=False)
 
 
 def run(args: argparse.Namespace) -> int:
     """Tracks the corpus; prints progress lines and a summary; 2 if a video has failed."""
-    from taptr.corpus.pipeline import CorpusOptions, require_ray, track_corpus
+    from taptr.corpus.cluster import actor_memory, check_address, require_ray
+    from taptr.corpus.layout import ResultLayout
+    from taptr.corpus.migrate import migrate
+    from taptr.corpus.pipeline import track_corpus
+    from taptr.corpus.settings import TrackSettings, with_digests
 
     _check_arguments(args)
     require_ray()  # before the model loads: say at once how to install it
+    check_address(args.address)  # and that the cluster cannot be reached
     videos = corpus_videos(args)
     predictor = load_predictor(_on_cpu(args))  # the settings, as the actors will have them
-    videos = with_digests(videos, args, predictor)
+    settings = TrackSettings(args.dtype, args.max_frames, args.backward)
+    videos = with_digests(videos, predictor, settings)
+    memory = _gib(args.memory_per_actor) or actor_memory(predictor)
     del predictor
-    options = CorpusOptions(
-        out=args.out,
-        actors=args.actors,
-        cpus_per_actor=args.cpus_per_actor,
-        gpus_per_actor=args.gpus_per_actor,
-        max_attempts=args.attempts,
-        max_frames=args.max_frames,
-        max_video_frames=args.max_video_frames,
-        backward=args.backward,
-        overwrite=args.overwrite,
-        retry_failed=args.retry_failed,
-        progress_every=args.progress_every,
-        address=args.address,
-    )
-    summary = track_corpus(videos, functools.partial(load_predictor, args), options)
-    print(summary.line() + f"; results in {args.out}/tracks/", flush=True)
-    for video_id, error in list(summary.failed.items())[:MAX_LISTED_FAILURES]:
-        print(f"  failed: {video_id}: {error}")
-    if len(summary.failed) > MAX_LISTED_FAILURES:
-        print(f"  ... and {len(summary.failed) - MAX_LISTED_FAILURES} more in {args.out}/failures/")
+    layout = ResultLayout.at(args.out)
+    if args.migrate:
+        print(f"moved {migrate(layout)} videos of the old layout into parts", flush=True)
+    summary = track_corpus(videos, functools.partial(load_predictor, args), _options(args, memory))
+    print(summary.line() + f"; results in {layout.tracks}", flush=True)
+    for line in summary.failure_lines(layout.failures):
+        print(line)
     if summary.failed_before:
         print(
-            f"  {summary.failed_before} failed in earlier runs ({args.out}/failures/); "
+            f"  {summary.failed_before} failed in earlier runs ({layout.failures}); "
             "--retry-failed tracks them again"
         )
     return 2 if summary.failed or summary.failed_before else 0
 
 
+def _options(args: argparse.Namespace, memory: int) -> CorpusOptions:
+    from taptr.corpus.parts import PartLimits
+    from taptr.corpus.pipeline import CorpusOptions
+
+    return CorpusOptions(
+        out=args.out,
+        actors=args.actors,
+        cpus_per_actor=args.cpus_per_actor,
+        gpus_per_actor=args.gpus_per_actor,
+        memory_per_actor=memory,
+        max_attempts=args.attempts,
+        max_frames=args.max_frames,
+        max_video_frames=args.max_video_frames,
+        backward=args.backward,
+        accept_truncated=args.accept_truncated,
+        overwrite=args.overwrite,
+        retry_failed=args.retry_failed,
+        progress_every=args.progress_every,
+        address=args.address,
+        parts=PartLimits(videos=args.part_videos, seconds=args.part_seconds),
+        start_timeout=args.actor_start_timeout,
+    )
+
+
 def _check_arguments(args: argparse.Namespace) -> None:
-    check_output_folder(args.out)
+    from taptr.corpus.storage import URI
+
+    if not URI.match(args.out):
+        check_output_folder(args.out)
     check_model_arguments(args)
     check_at_least(args.query_frame, 0, "--query-frame")
     check_at_least(args.mask_stride, 1, "--mask-stride")
     check_at_least(args.attempts, 1, "--attempts")
+    check_at_least(args.part_videos, 1, "--part-videos")
     if args.actors is not None:
         check_at_least(args.actors, 1, "--actors")
     if args.max_video_frames is not None:
         check_at_least(args.max_video_frames, 1, "--max-video-frames")
-    if not args.cpus_per_actor > 0:
-        raise ValueError(f"--cpus-per-actor must be above 0, got {args.cpus_per_actor}")
+    for flag, value in (
+        ("--cpus-per-actor", args.cpus_per_actor),
+        ("--part-seconds", args.part_seconds),
+        ("--actor-start-timeout", args.actor_start_timeout),
+        ("--memory-per-actor", args.memory_per_actor),
+    ):
+        if value is not None and not value > 0:
+            raise ValueError(f"{flag} must be above 0, got {value}")
     if args.gpus_per_actor is not None and not args.gpus_per_actor >= 0:
         raise ValueError(f"--gpus-per-actor must be 0 or more, got {args.gpus_per_actor}")
 
 
 def corpus_videos(args: argparse.Namespace) -> list[CorpusVideo]:
-    """The videos the inputs name, manifests read, with the options' queries as defaults."""
+    """The videos the inputs name, manifests read, with the options' queries as defaults.
+
+    Raises:
+        ValueError: no videos at all, or an input without queries.
+    """
     from taptr.cli.videos import expand_videos
     from taptr.corpus.inputs import CorpusVideo
     from taptr.corpus.manifest import is_manifest, read_manifest
@@ -202,36 +288,13 @@ def default_queries(args: argparse.Namespace) -> QuerySpec | None:
     )
 
 
-def with_digests(
-    videos: list[CorpusVideo], args: argparse.Namespace, predictor: Predictor
-) -> list[CorpusVideo]:
-    """The videos with their settings digests (16 hex digits).
-
-    A digest hashes `track_settings` (the record ``taptr track`` keeps in settings.json)
-    with the video's own queries.
-    """
-    from dataclasses import replace
-
-    import numpy as np
-
-    from taptr.cli.result_settings import query_settings, track_settings
-
-    base = track_settings(args, predictor, None)
-    digests: dict[QuerySpec, str] = {}  # corpora share a few query specs among many videos
-    for spec in dict.fromkeys(video.queries for video in videos):
-        options = copy.copy(args)
-        vars(options).update(
-            points=None, grid=spec.grid, mask=spec.mask, query_frame=spec.query_frame
-        )
-        listed = None if spec.points is None else np.asarray(spec.points, np.float32)
-        settings = {**base, "queries": query_settings(options, listed)}
-        text = json.dumps(settings, sort_keys=True)
-        digests[spec] = hashlib.sha256(text.encode()).hexdigest()[:16]
-    return [replace(video, digest=digests[video.queries]) for video in videos]
+def _gib(value: float | None) -> int | None:
+    return None if value is None else int(value * 2**30)
 
 
 def _on_cpu(args: argparse.Namespace) -> argparse.Namespace:
     """The options with the model on the CPU, uncompiled (the driver only reads settings)."""
     cpu = copy.copy(args)
     cpu.device, cpu.compile, cpu.frames_per_call, cpu.kernel = "cpu", False, 1, "gather"
+    cpu.capture = "off"
     return cpu

@@ -1,14 +1,15 @@
 """Tracking a corpus of videos on a Ray cluster (or a local Ray instance): ``taptr track-corpus``.
 
-A corpus is a Ray Data job (docs/CORPUS.md). CPU tasks read each video's header and check
-it (`taptr.corpus.probe`); actors that each hold one `taptr.api.predictor.Predictor` (one GPU
-each where there are GPUs) stream the frames through the tracker (`taptr.corpus.worker`);
-every video's rows appear in a Parquet dataset at once or not at all, failures are rows
-with their one-line error (`taptr.corpus.results`); a rerun skips what is done with the
-same settings; `taptr.corpus.pipeline` ties it together and prints progress and a summary
-(`taptr.corpus.progress`).
+The driver (`taptr.corpus.pipeline`) reads the output folder's index to leave out what is
+done (`taptr.corpus.layout`), checks what it asks of the cluster before Ray could wait on
+it (`taptr.corpus.cluster`), and hands batches of videos to tracker actors
+(`taptr.corpus.scheduler`), each holding one `taptr.api.predictor.Predictor`
+(`taptr.corpus.worker`). Actors write the rows of many videos at once as parts of a
+Parquet dataset (`taptr.corpus.parts`, schema in `taptr.corpus.schema`), in a local
+folder or an object store (`taptr.corpus.storage`); a video counts once its part is
+published and read back. docs/CORPUS.md describes the job, the layout and the limits.
 
-Ray and pyarrow are the optional extra ``pip install "taptr[ray]"``; nothing here imports
+Ray and pyarrow are the optional extra ``pip install -e ".[ray]"``; nothing here imports
 them at package import.
 """
 

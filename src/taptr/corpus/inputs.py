@@ -8,16 +8,11 @@ id is their path as found.
 
 from __future__ import annotations
 
-import hashlib
 import json
-import re
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-
-KEY_STEM_CHARS = 48
-"""Characters of a video id kept (readable) in its result file names."""
 
 
 @dataclass(frozen=True)
@@ -64,7 +59,7 @@ class QuerySpec:
         return cls(points=None if points is None else points_tuple(points), **fields)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class CorpusVideo:
     """One video of a corpus.
 
@@ -99,16 +94,6 @@ def points_tuple(points: object) -> tuple[tuple[float, float, float], ...]:
     if not np.isfinite(array).all():
         raise ValueError("points hold a NaN or infinite number")
     return tuple((float(t), float(x), float(y)) for t, x, y in array.astype(np.float32))
-
-
-def video_key(video_id: str) -> str:
-    """A file-name-safe key unique to ``video_id``: its readable part and a hash.
-
-    ``clips/a b.mp4`` → ``clips_a_b.mp4-3f2a...``; never contains a dot after the hash, so
-    ``{key}.`` starts only this video's files.
-    """
-    readable = re.sub(r"[^A-Za-z0-9_-]+", "_", video_id)[-KEY_STEM_CHARS:].strip("_") or "video"
-    return f"{readable}-{hashlib.sha256(video_id.encode()).hexdigest()[:16]}"
 
 
 def build_queries(

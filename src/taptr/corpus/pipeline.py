@@ -1,47 +1,51 @@
-"""`track_corpus`: a corpus as one Ray Data job, resumable and fault tolerant.
+"""`track_corpus`: a corpus on a Ray cluster, resumable, every video accounted for.
 
-The job: rows of videos (those not already done with the same settings) → `probe_video`
-in CPU tasks → `VideoTracker` actors (one predictor each; one GPU each where the cluster
-has GPUs) → one outcome row per video, counted by `Progress`. Ray restarts a dead actor
-and retries its video; the tries are bounded per video by the attempt markers of
-`taptr.corpus.results` (each actor runs one video at a time, so a death retries only the
-video it killed), which turn the last allowed retry into a failure row. After
-the job, every video still without a result or a failure record (the job itself failed)
-is recorded as failed: no video is dropped silently.
+The run: check the output folder (`taptr.corpus.layout`) → leave out the videos its
+index says are done (or failed) with the same settings → join the cluster and size the
+actors before Ray could wait on them (`taptr.corpus.cluster`) → hand the rest to tracker
+actors (`taptr.corpus.scheduler`, `taptr.corpus.worker`) → remove superseded rows
+(`taptr.corpus.compaction`) → write the summary. Ctrl-C or SIGTERM stop handing out
+videos, give the actors `STOP_GRACE_SECONDS` to write what they hold, write the summary
+(``state: interrupted``) and end the job's Ray processes before the exception goes on.
 """
 
 from __future__ import annotations
 
-import builtins
-import os
+import contextlib
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from types import ModuleType
 from typing import TYPE_CHECKING, Any
 
-from taptr.corpus.inputs import CorpusVideo, video_key
-from taptr.corpus.probe import one_line, probe_video
+from taptr.corpus.cluster import (
+    PROCESS_BYTES,
+    ActorShape,
+    joined,
+    plan_actors,
+    require_ray,
+)
+from taptr.corpus.compaction import compact
+from taptr.corpus.inputs import CorpusVideo
+from taptr.corpus.layout import ResultLayout, new_run
+from taptr.corpus.parts import PartLimits, PartWriter
 from taptr.corpus.progress import Progress, Summary
-from taptr.corpus.results import ResultLayout
-from taptr.corpus.worker import TrackOptions, VideoTracker
+from taptr.corpus.records import Finished, VideoTask
+from taptr.corpus.scheduler import JobError, Scheduler, SchedulerOptions
+from taptr.corpus.standing import standing
+from taptr.corpus.worker import TrackerWorker, WorkerOptions
+from taptr.messages import error_line, printable
 
 if TYPE_CHECKING:
+    import pyarrow as pa
+
     from taptr.api.predictor import Predictor
 
-INSTALL_HINT = 'tracking a corpus needs Ray: pip install "taptr[ray]"'
-"""What to do when Ray (or pyarrow) is missing."""
+STOP_GRACE_SECONDS = 20.0
+"""After Ctrl-C or SIGTERM: how long actors may take to finish their calls and write."""
 
-PROBE_CPUS = 0.0
-"""CPUs a header-reading task asks for: none, so that actors holding every CPU cannot starve
-the tasks that feed them (a header takes milliseconds to read)."""
-
-ACTORS_PER_PROBE = 8
-"""Tracker actors one header-reading task keeps fed (a header takes milliseconds, a video
-seconds); more tasks at once would only start more worker processes."""
-
-MAX_BLOCKS = 2000
-"""Most blocks the corpus rows are cut into (small corpora: one video per block)."""
+DEFAULT_ACTOR_MEMORY = PROCESS_BYTES + 512 * 2**20
+"""Memory reserved per actor when the caller does not size it from its model."""
 
 
 @dataclass(frozen=True)
@@ -49,45 +53,42 @@ class CorpusOptions:
     """How a corpus is run.
 
     Attributes:
-        out: output folder (on a cluster, one that every node mounts).
-        actors: tracker actors; None: one per GPU of the cluster, else one per
-            ``cpus_per_actor`` CPUs.
+        out: output folder or URI (on a cluster, one every node reaches).
+        actors: tracker actors; None: as many as the cluster holds (one per GPU with
+            GPUs, else one per ``cpus_per_actor`` CPUs, within memory).
         cpus_per_actor: CPUs each actor reserves (torch threads on CPU actors).
         gpus_per_actor: GPUs each actor reserves; None: 1 where the cluster has GPUs, else 0.
-        max_attempts: attempts at a video whose worker dies before it is recorded as failed.
+        memory_per_actor: bytes each actor reserves (None: `DEFAULT_ACTOR_MEMORY`).
+        max_attempts: deaths of its actor while tracking a video before it is failed.
         max_frames: track at most this many frames of each video.
         max_video_frames: refuse (record as failed) videos that declare more frames.
         backward: also track before each query frame.
+        accept_truncated: keep the tracks of videos that decode to fewer frames than
+            their containers declare (by default they are failures).
         overwrite: track videos again even where a result with the same settings exists.
-        retry_failed: track the videos recorded as failed with the same settings again
-            (by default a rerun leaves them, as it leaves the finished ones).
+        retry_failed: track the videos recorded as failed with the same settings again.
         progress_every: seconds between progress lines.
         address: the Ray cluster to join (None: ``RAY_ADDRESS``, else a local instance).
+        parts: when actors write their parts.
+        start_timeout: seconds an actor may take to start before it is dropped.
     """
 
     out: str
     actors: int | None = None
     cpus_per_actor: float = 1.0
     gpus_per_actor: float | None = None
+    memory_per_actor: int | None = None
     max_attempts: int = 3
     max_frames: int | None = None
     max_video_frames: int | None = None
     backward: bool = False
+    accept_truncated: bool = False
     overwrite: bool = False
     retry_failed: bool = False
     progress_every: float = 30.0
     address: str | None = None
-
-
-def require_ray() -> ModuleType:
-    """Imports Ray (and checks pyarrow), or says how to install them."""
-    try:
-        import pyarrow  # noqa: F401
-        import ray
-        import ray.data
-    except ModuleNotFoundError:
-        raise ModuleNotFoundError(INSTALL_HINT) from None
-    return ray
+    parts: PartLimits = field(default_factory=PartLimits)
+    start_timeout: float = 300.0
 
 
 def track_corpus(
@@ -95,169 +96,237 @@ def track_corpus(
     make_predictor: Callable[[], Predictor],
     options: CorpusOptions,
     print_line: Callable[..., Any] = print,
+    worker: type[TrackerWorker] = TrackerWorker,
 ) -> Summary:
     """Tracks every video of a corpus not already done; returns what happened.
 
     Args:
-        videos: the corpus, each with its settings digest (unique ids).
+        videos: the corpus, each with its settings digest (`taptr.corpus.settings`) and
+            a unique id.
         make_predictor: builds a predictor; called once in each actor (it is pickled).
         options: see `CorpusOptions`.
         print_line: where progress lines go.
+        worker: the actor class (benchmarks put a named stand-in here).
 
     Raises:
-        ValueError: two videos with one id.
+        ValueError: ids given twice, a folder holding foreign files, an impossible
+            request of the cluster, or a job that cannot go on (one line each).
         ModuleNotFoundError: Ray is not installed (the message says how to install it).
+        KeyboardInterrupt: Ctrl-C or SIGTERM, after the summary is written.
     """
     ray = require_ray()
-    _check_unique(videos)
+    check_unique(videos)
     started = time.perf_counter()
-    layout = ResultLayout(options.out)
-    layout.prepare()
-    rows = list({video.video_id: _row(video) for video in videos}.values())
-    summary = Summary(total=len(rows))
-    todo = _todo(rows, layout, options, summary)
-    if todo:
-        _join(ray, options.address)
-        progress = Progress(summary, len(todo), options.progress_every, print_line)
-        # Ray Data's progress bars replace builtins.print for the whole process and leave
-        # it replaced; the caller's print is its own
-        own_print = builtins.print
+    layout = ResultLayout.at(options.out)
+    layout.check()  # before anything else: a foreign folder is refused at once
+    summary = Summary(total=len(videos), run=new_run())
+    todo = plan(videos, sound_index(layout, print_line), options, summary)
+    # nothing to track: no cluster to join (a finished corpus reruns in seconds)
+    cluster = joined(ray, options.address) if todo else contextlib.nullcontext()
+    with cluster:
+        actors, shape = _size(ray, options) if todo else (0, None)
+        layout.prepare()
+        compact(layout, summary.run)  # what a stopped run left superseded
+        layout.write_summary(summary.as_dict())  # "running": an old summary is not this run's
         try:
-            for outcome in _dataset(ray, todo, make_predictor, options).iter_rows():
-                progress.update(outcome)
-        except Exception as error:  # Ray gave up: record what it left, then report it
-            _record_lost(layout, todo, summary, f"the Ray job failed: {one_line(error)}")
+            if todo and shape is not None:
+                starter = _actor_starter(ray, worker, make_predictor, options, summary.run, shape)
+                _run(todo, starter, options, (layout, summary, actors), print_line)
+            compact(layout, summary.run)
+            layout.finish()
+            summary.state = "finished"
         finally:
-            builtins.print = own_print
-        _record_lost(layout, todo, summary, "the Ray job ended without a result for it")
-    layout.finish()
-    summary.seconds = time.perf_counter() - started
-    layout.write_summary(summary.as_dict())
+            summary.seconds = time.perf_counter() - started
+            layout.write_summary(summary.as_dict())
+            if summary.state != "finished":  # the caller gets an exception, not the summary
+                print_line(summary.line(), flush=True)
     return summary
 
 
-def _join(ray: ModuleType, address: str | None) -> None:
-    """Joins the cluster ``address`` (None: ``RAY_ADDRESS`` or a new local instance).
+def plan(
+    videos: list[CorpusVideo], index: pa.Table, options: CorpusOptions, summary: Summary
+) -> list[VideoTask]:
+    """The videos to track now; counts the skipped ones (done, or failed before).
+
+    A video is done when its standing result in ``index`` (`taptr.corpus.standing`) has
+    its digest, failed before when its standing failure has it.
+    """
+    latest = {} if options.overwrite else _standing_digests(index)
+    tasks: list[VideoTask] = []
+    spec_text: dict[int, str] = {}  # videos share their QuerySpec objects: one JSON each
+    for video in videos:
+        done, failed = latest.get(video.video_id, ("", ""))
+        if done == video.digest:
+            summary.skipped += 1
+            continue
+        if failed == video.digest and not options.retry_failed:
+            summary.failed_before += 1
+            continue
+        text = spec_text.get(id(video.queries))
+        if text is None:
+            text = spec_text[id(video.queries)] = video.queries.to_json()
+        tasks.append(VideoTask(len(tasks), video.video_id, video.path, text, video.digest))
+    return tasks
+
+
+def check_unique(videos: list[CorpusVideo]) -> None:
+    """Refuses a corpus that gives one id to two videos (or to one video twice).
 
     Raises:
-        ValueError: the cluster cannot be reached or refuses the connection (one line).
+        ValueError: names the id and both positions.
     """
-    if ray.is_initialized():
-        return
-    try:
-        ray.init(address=address, log_to_driver=True)
-    except (ConnectionError, ray.exceptions.RayError) as error:
-        where = address or os.environ.get("RAY_ADDRESS") or "a local instance"
-        raise ValueError(f"cannot join the Ray cluster ({where}): {one_line(error)}") from None
-
-
-def actor_resources(ray: ModuleType, options: CorpusOptions) -> tuple[int, float, float]:
-    """(actors, CPUs each, GPUs each) from the options and the cluster's resources."""
-    resources = ray.cluster_resources()
-    gpus = options.gpus_per_actor
-    if gpus is None:
-        gpus = 1.0 if resources.get("GPU", 0) >= 1 else 0.0
-    actors = options.actors
-    if actors is None:
-        have = resources.get("GPU", 0) / gpus if gpus else resources.get("CPU", 1)
-        actors = max(1, int(have // (1 if gpus else options.cpus_per_actor)))
-    return actors, options.cpus_per_actor, gpus
-
-
-def _dataset(
-    ray: ModuleType,
-    rows: list[dict[str, str]],
-    make_predictor: Callable[[], Predictor],
-    options: CorpusOptions,
-) -> Any:
-    """The Ray Data job: probe tasks, then tracker actors (one video per actor call)."""
-    actors, cpus, gpus = actor_resources(ray, options)
-    track = TrackOptions(options.out, options.max_attempts, options.max_frames, options.backward)
-    forwarded = _forwarded_environment()
-    # workers start faster without a runtime environment of their own
-    environment = {"runtime_env": {"env_vars": forwarded}} if forwarded else {}
-    return (
-        ray.data.from_items(rows, override_num_blocks=min(len(rows), MAX_BLOCKS))
-        .map(
-            probe_video,
-            fn_kwargs={"max_video_frames": options.max_video_frames},
-            num_cpus=PROBE_CPUS,
-            compute=ray.data.TaskPoolStrategy(size=max(1, actors // ACTORS_PER_PROBE)),
-            **environment,
-        )
-        .map_batches(
-            VideoTracker,
-            fn_constructor_kwargs={
-                "make_predictor": make_predictor,
-                "options": track,
-                "threads": None if gpus else max(1, int(cpus)),
-            },
-            batch_size=1,
-            compute=ray.data.ActorPoolStrategy(size=actors, max_tasks_in_flight_per_actor=1),
-            num_cpus=cpus,
-            num_gpus=gpus,
-            # Ray Data restarts dead actors and retries their tasks without limit; one
-            # video in flight per actor, so a death retries only the video it killed, and
-            # the attempt markers bound the tries of each video (then it is a failure row)
-            **environment,
-        )
-    )
-
-
-def _todo(
-    rows: list[dict[str, str]], layout: ResultLayout, options: CorpusOptions, summary: Summary
-) -> list[dict[str, str]]:
-    """The rows to track now; counts the skipped ones (done, or failed before) in ``summary``."""
-    done = set() if options.overwrite else layout.done()
-    failed = set() if options.overwrite or options.retry_failed else layout.failed()
-    todo = []
-    for row in rows:
-        name = f"{row['key']}.{row['digest']}.parquet"
-        if name in done:
-            summary.skipped += 1
-        elif name in failed:
-            summary.failed_before += 1
-        else:
-            todo.append(row)
-    return todo
-
-
-def _row(video: CorpusVideo) -> dict[str, str]:
-    return {
-        "video_id": video.video_id,
-        "path": video.path,
-        "queries": video.queries.to_json(),
-        "digest": video.digest,
-        "key": video_key(video.video_id),
-    }
-
-
-def _check_unique(videos: list[CorpusVideo]) -> None:
-    seen: dict[str, str] = {}
-    for video in videos:
-        if seen.setdefault(video.video_id, video.path) != video.path:
+    first: dict[str, int] = {}
+    for number, video in enumerate(videos, 1):
+        earlier = first.setdefault(video.video_id, number)
+        if earlier != number:
             raise ValueError(
-                f"the id {video.video_id!r} names two videos ({seen[video.video_id]} and "
-                f"{video.path}); give each an id of its own"
+                f"the id {printable(video.video_id)!r} is given to videos {earlier} and "
+                f"{number} of the corpus ({videos[earlier - 1].path} and {video.path}); give "
+                "each video an id of its own"
             )
 
 
-def _record_lost(
-    layout: ResultLayout, rows: list[dict[str, str]], summary: Summary, reason: str
+def sound_index(layout: ResultLayout, print_line: Callable[..., Any] = print) -> pa.Table:
+    """The index of the parts that read back as it says; damaged parts are removed.
+
+    Their videos are then tracked again, as if never done.
+    """
+    import pyarrow as pa
+    import pyarrow.compute as pc
+
+    index = layout.read_index()
+    damaged = layout.damaged_parts(index)
+    if not damaged:
+        return index
+    for part in damaged:
+        layout.remove_part(part)
+    kept = index.filter(
+        pc.invert(pc.is_in(index["part"], value_set=pa.array(damaged, pa.string())))
+    )
+    print_line(
+        f"removed {len(damaged)} damaged part(s) that no longer hold the rows their index "
+        f"names; their {len(index) - len(kept)} videos are tracked again",
+        flush=True,
+    )
+    return kept
+
+
+def _standing_digests(index: pa.Table) -> dict[str, tuple[str, str]]:
+    """Per video id: digests of its standing result and failure ('' where none)."""
+    found = standing(index)
+    return {
+        video_id: (done.digest if done else "", failed.digest if failed else "")
+        for video_id, (done, failed) in found.items()
+    }
+
+
+def _size(ray: ModuleType, options: CorpusOptions) -> tuple[int, ActorShape]:
+    """(actors, what each reserves), checked against the cluster."""
+    gpus = options.gpus_per_actor
+    if gpus is None:
+        gpus = 1.0 if ray.cluster_resources().get("GPU", 0) >= 1 else 0.0
+    memory = options.memory_per_actor or DEFAULT_ACTOR_MEMORY
+    shape = ActorShape(options.cpus_per_actor, gpus, memory)
+    return plan_actors(ray, options.actors, shape), shape
+
+
+def _run(
+    tasks: list[VideoTask],
+    start_actor: Callable[[], Any],
+    options: CorpusOptions,
+    context: tuple[ResultLayout, Summary, int],
+    print_line: Callable[..., Any],
 ) -> None:
-    """Records as failed every video of ``rows`` with neither a result nor a failure."""
-    recorded = layout.done() | layout.failed()
-    for row in rows:
-        name = f"{row['key']}.{row['digest']}.parquet"
-        if name in recorded:
-            continue
-        attempts = layout.attempts(row["key"], row["digest"])
-        layout.write_failure(
-            row["key"], row["video_id"], row["path"], reason, attempts, row["digest"]
-        )
-        summary.failed[row["video_id"]] = reason
+    """Runs the scheduler to the end (or to a stop); counts into the summary."""
+    layout, summary, actors = context
+    progress = Progress(summary, len(tasks), options.progress_every, print_line)
+
+    def on_commit(finished: Finished, attempts: int) -> None:
+        summary.commit(finished, attempts, tasks[finished.index].video_id)
+
+    scheduler = Scheduler(
+        tasks,
+        start_actor,
+        layout,
+        PartWriter(layout, summary.run, options.parts),
+        SchedulerOptions(actors, options.max_attempts, options.start_timeout),
+        progress.update,
+        on_commit,
+    )
+    try:
+        _drive(scheduler, progress)
+    except KeyboardInterrupt:
+        summary.state = "interrupted"
+        _stop(scheduler, progress)
+        raise
+    except JobError as error:
+        summary.state, summary.error = "failed", error_line(error)
+        raise ValueError(summary.error) from None
+    finally:
+        summary.left = len(scheduler.close())
+        if scheduler.first_ready is not None:
+            summary.tracking_seconds = time.monotonic() - scheduler.first_ready
+        progress.final()
+
+
+def _drive(scheduler: Scheduler, progress: Progress) -> None:
+    while scheduler.step():
+        if scheduler.first_ready is not None:
+            progress.start(scheduler.first_ready)
+        progress.tick()
+
+
+def _stop(scheduler: Scheduler, progress: Progress) -> None:
+    """Lets the actors finish their calls and write, for at most `STOP_GRACE_SECONDS`."""
+    scheduler.stop()
+    deadline = time.monotonic() + STOP_GRACE_SECONDS
+    try:
+        while time.monotonic() < deadline and scheduler.step():
+            progress.tick()
+    except KeyboardInterrupt:  # a second signal: stop now
+        pass
+
+
+def _actor_starter(
+    ray: ModuleType,
+    worker: type[TrackerWorker],
+    make_predictor: Callable[[], Predictor],
+    options: CorpusOptions,
+    run: str,
+    shape: ActorShape,
+) -> Callable[[], Any]:
+    from taptr.corpus.storage import Storage
+
+    settings = WorkerOptions(
+        storage=Storage(options.out),
+        run=run,
+        parts=options.parts,
+        max_frames=options.max_frames,
+        max_video_frames=options.max_video_frames,
+        backward=options.backward,
+        accept_truncated=options.accept_truncated,
+    )
+    threads = None if shape.gpus else max(1, int(shape.cpus))
+    forwarded = _forwarded_environment()
+    actor = ray.remote(worker).options(
+        num_cpus=shape.cpus,
+        num_gpus=shape.gpus,
+        memory=shape.memory,
+        max_restarts=0,  # the driver replaces dead actors: it knows what each was doing
+        max_task_retries=0,
+        max_concurrency=2,  # `stop` arrives while `run` works
+        # workers start faster without a runtime environment of their own
+        **({"runtime_env": {"env_vars": forwarded}} if forwarded else {}),
+    )
+
+    def start() -> Any:
+        return actor.remote(make_predictor, settings, threads)
+
+    return start
 
 
 def _forwarded_environment() -> dict[str, str]:
-    """The driver's ``TAPTR_*`` variables (limits, the testing hook), for every worker."""
+    """The driver's ``TAPTR_*`` variables (limits, the testing hook), for every actor."""
+    import os
+
     return {name: value for name, value in os.environ.items() if name.startswith("TAPTR_")}

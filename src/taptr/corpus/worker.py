@@ -1,34 +1,49 @@
-"""The tracker actor of a corpus: one `Predictor` per actor, one video per call.
+"""The tracker actor of a corpus: one `Predictor`, many videos, results written in parts.
 
-Ray Data calls `VideoTracker` with batches of one probed row (`taptr.corpus.probe`). The
-frames stream from the decoder through `taptr.api.streaming.track_frames` (a reader thread
-decodes a few frames ahead while the model runs), so an actor's memory stays flat in the
-video's length; only the tracks (T × N) are held. The video's rows are then written
-atomically (`taptr.corpus.results`).
-
-Before tracking a video the actor records an attempt (``_attempts/``); a video whose
-earlier attempts all ended with the actor's death (killed, out of memory) is recorded as
-failed once it has had ``max_attempts`` of them, instead of being tried again.
+The driver (`taptr.corpus.scheduler`) calls `TrackerWorker.run` with a list of videos;
+it is a Ray streaming generator whose items are lists of events
+(`taptr.corpus.records`). For each video the actor reads the header and builds the
+queries (`taptr.corpus.probe`); a video that passes is announced with `Started` before
+its frames are decoded, so that a death of the actor is charged to that video alone.
+Frames stream from the decoder through `taptr.api.streaming.track_frames` (a reader
+thread decodes a few frames ahead while the model runs), so an actor's memory stays flat
+in the video's length; only the tracks (T × N) are held until the part is written
+(`taptr.corpus.parts`).
 
 Testing hook: ``TAPTR_CORPUS_KILL="VIDEO_ID:N[,VIDEO_ID:N...]"`` makes an actor exit
 abruptly (``os._exit``, as the OOM killer would end it) in the middle of that video's first
-N attempts.
+N tracking attempts.
 """
 
 from __future__ import annotations
 
+import logging
 import os
 import queue
 import threading
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from taptr.corpus.probe import one_line
-from taptr.corpus.results import ResultLayout, VideoTracks
+from taptr.corpus.layout import ResultLayout
+from taptr.corpus.parts import PartLimits, PartWriter
+from taptr.corpus.probe import Probed, ProbeError, probe_video
+from taptr.corpus.records import (
+    DONE,
+    FAILED,
+    Event,
+    Failure,
+    Finished,
+    Started,
+    VideoTask,
+    VideoTracks,
+)
+from taptr.corpus.storage import Storage
+from taptr.io.frame_count import TruncatedVideoError, check_decoded
+from taptr.messages import error_line
 
 if TYPE_CHECKING:
     from taptr.api.predictor import Predictor
@@ -39,30 +54,33 @@ KILL_VARIABLE = "TAPTR_CORPUS_KILL"
 READ_AHEAD = 8
 """Frames the reader thread decodes ahead of the tracker."""
 
-OUTCOME_FIELDS = ("video_id", "status", "error", "frames", "points", "seconds", "attempts")
-"""Columns of what an actor returns per video (``status``: ``done`` or ``failed``;
-``attempts``: tracking attempts started, more than 1 after its worker died)."""
-
 
 @dataclass(frozen=True)
-class TrackOptions:
+class WorkerOptions:
     """How each video is tracked and recorded.
 
     Attributes:
-        out: the output folder (`ResultLayout`).
-        max_attempts: attempts at a video before its worker's deaths make it a failure.
+        storage: the output folder.
+        run: the run's id (in every part's name).
+        parts: when a part is written.
         max_frames: track at most this many frames of each video (None: all).
+        max_video_frames: refuse videos that declare more frames (None: no limit).
         backward: also track before each query frame (the file is read twice).
+        accept_truncated: keep the tracks of a video that decodes to fewer frames than
+            its container declares (by default it is a failure).
     """
 
-    out: str
-    max_attempts: int = 3
+    storage: Storage
+    run: str
+    parts: PartLimits = field(default_factory=PartLimits)
     max_frames: int | None = None
+    max_video_frames: int | None = None
     backward: bool = False
+    accept_truncated: bool = False
 
 
-class VideoTracker:
-    """A Ray Data callable class holding one predictor.
+class TrackerWorker:
+    """A Ray actor holding one predictor and the part it is filling.
 
     Args:
         make_predictor: builds the predictor (called once, in the actor).
@@ -73,86 +91,137 @@ class VideoTracker:
     def __init__(
         self,
         make_predictor: Callable[[], Predictor],
-        options: TrackOptions,
+        options: WorkerOptions,
         threads: int | None = None,
     ) -> None:
         if threads is not None:
             import torch
 
             torch.set_num_threads(threads)
+        # the driver has told the user which model runs: once per run, not per actor
+        logging.getLogger("taptr").setLevel(logging.ERROR)
         self.predictor = make_predictor()
         self.options = options
-        self.layout = ResultLayout(options.out)
+        self.parts = PartWriter(ResultLayout(options.storage), options.run, options.parts)
+        self.stopping = False  # set by `stop` from the actor's second thread
 
-    def __call__(self, batch: dict[str, np.ndarray]) -> dict[str, list]:
-        """Tracks the batch's videos; one outcome row each (`OUTCOME_FIELDS`)."""
-        count = len(batch["video_id"])
-        outcomes = [self.track_one({k: v[i] for k, v in batch.items()}) for i in range(count)]
-        return {name: [outcome[name] for outcome in outcomes] for name in OUTCOME_FIELDS}
+    def ready(self) -> str:
+        """The actor's writer id (names its parts), once its model is loaded."""
+        return self.parts.writer
 
-    def track_one(self, row: dict[str, Any]) -> dict[str, Any]:
-        """Tracks one probed row, or records why it cannot be; returns its outcome."""
-        started = time.perf_counter()
-        key, digest = str(row["key"]), str(row["digest"])
-        earlier = 0
-        error = str(row["error"])
-        if not error:
-            earlier = self.layout.start_attempt(key, digest)
-            if earlier >= self.options.max_attempts:
-                error = f"its worker died in each of {earlier} attempts (killed or out of memory)"
-        if not error:
+    def run(self, tasks: list[VideoTask]) -> Iterator[list[Event]]:
+        """Tracks ``tasks`` in order, yielding events (see the module docstring)."""
+        events: list[Event] = []
+        for task in tasks:
+            if self.stopping:  # the rest of the batch goes back to the driver untouched
+                break
+            started = time.perf_counter()
             try:
-                video = self._track(row, attempt=earlier + 1)
-            except Exception as failure:  # a bad video must not stop the others
-                error = one_line(failure)
+                probed = self._probe(task)
+            except Exception as error:  # every reason a video cannot be read is a failure
+                declared = error.declared_frames if isinstance(error, ProbeError) else None
+                failure = Failure(
+                    task.video_id, task.path, error_line(error), 0, declared, None, task.digest
+                )
+                events.append(self._failed(task.index, failure, started))
             else:
-                self.layout.write_tracks(key, video)
-                shape = video.visibility.shape
-                return _outcome(row, "done", "", shape, started, earlier + 1)
-        attempts = earlier if earlier >= self.options.max_attempts else earlier + 1
-        self.layout.write_failure(
-            key, str(row["video_id"]), str(row["path"]), error, attempts, digest
-        )
-        return _outcome(row, "failed", error, (0, 0), started, attempts)
+                yield events + [Started(task.index)]
+                events = [self._track_one(task, probed, started)]
+            if self.parts.due():
+                events.append(self.parts.flush())  # type: ignore[arg-type]
+        if events:
+            yield events
 
-    def _track(self, row: dict[str, Any], attempt: int) -> VideoTracks:
+    def stop(self) -> None:
+        """Ends the current call after the video in progress (the job is stopping)."""
+        self.stopping = True
+
+    def flush(self) -> Iterator[list[Event]]:
+        """Writes the waiting videos as a part now (the driver's call when idle or done).
+
+        A generator of one item, like `run`, so the driver reads both alike.
+        """
+        committed = self.parts.flush()
+        yield [] if committed is None else [committed]
+
+    def _probe(self, task: VideoTask) -> Probed:
+        """The video's header and queries (`taptr.corpus.probe.probe_video`)."""
+        return probe_video(task, self.options.max_video_frames)
+
+    def _track_one(self, task: VideoTask, probed: Probed, started: float) -> Finished:
+        """Tracks one video into the part, or records why it failed."""
+        try:
+            video = self._track(task, probed)
+        except Exception as error:  # a bad video must not stop the others
+            decoded = error.decoded if isinstance(error, TruncatedVideoError) else None
+            failure = Failure(
+                task.video_id,
+                task.path,
+                error_line(error),
+                task.attempt,
+                probed.info.num_frames,
+                decoded,
+                task.digest,
+            )
+            return self._failed(task.index, failure, started)
+        self.parts.add_tracks(task.index, video)
+        frames, points = video.visibility.shape
+        seconds = time.perf_counter() - started
+        return Finished(task.index, DONE, "", frames, points, seconds)
+
+    def _failed(self, index: int, failure: Failure, started: float) -> Finished:
+        self.parts.add_failure(index, failure)
+        return Finished(index, FAILED, failure.error, seconds=time.perf_counter() - started)
+
+    def _track(self, task: VideoTask, probed: Probed) -> VideoTracks:
         from taptr.api.online import FrameCountError
 
-        path = str(row["path"])
-        queries = np.frombuffer(row["query_array"], np.float32).reshape(-1, 3).copy()
-        declared = int(row["num_frames"]) or None
-        if declared is not None and self.options.max_frames is not None:
-            declared = min(declared, self.options.max_frames)
+        info, options = probed.info, self.options
+        declared = info.num_frames
+        expected = (
+            declared if options.max_frames is None else min(declared or 0, options.max_frames)
+        )
         tracks = visibility = None
-        if declared is not None:
+        if expected:
             try:
-                tracks, visibility = self._stream(row, queries, declared, attempt)
-            except FrameCountError:  # the container's frame count was wrong
-                tracks = None
+                tracks, visibility = self._stream(task, probed.queries, expected)
+            except FrameCountError as error:  # the container's frame count was wrong
+                if error.short:
+                    check_decoded(
+                        task.path,
+                        error.seen,
+                        declared,
+                        options.max_frames,
+                        options.accept_truncated,
+                    )
         if tracks is None or visibility is None:
-            tracks, visibility = self._in_memory(path, queries)
+            tracks, visibility = self._in_memory(task.path, probed.queries)
+            check_decoded(
+                task.path, len(tracks), declared, options.max_frames, options.accept_truncated
+            )
         return VideoTracks(
-            video_id=str(row["video_id"]),
-            path=path,
-            queries=queries,
+            video_id=task.video_id,
+            path=task.path,
+            queries=probed.queries,
             tracks=tracks,
             visibility=visibility,
-            size=(int(row["height"]), int(row["width"])),
-            fps=float(row["fps"]) or None,
+            size=(info.height, info.width),
+            fps=info.fps,
+            declared_frames=declared,
             model=str(self.predictor.source),
-            digest=str(row["digest"]),
+            digest=task.digest,
         )
 
     def _stream(
-        self, row: dict[str, Any], queries: np.ndarray, num_frames: int, attempt: int
+        self, task: VideoTask, queries: np.ndarray, num_frames: int
     ) -> tuple[np.ndarray, np.ndarray]:
         """Tracks frame by frame: (T, N, 2) tracks and (T, N) visibility."""
         from taptr.api.streaming import track_frames, track_frames_both_ways
         from taptr.io.reverse_frames import iter_frames_reversed
         from taptr.io.video import iter_frames
 
-        path, limit = str(row["path"]), self.options.max_frames
-        doomed = _doomed(str(row["video_id"]), attempt)
+        path, limit = task.path, self.options.max_frames
+        doomed = _doomed(task.video_id, task.attempt)
 
         def read() -> Iterator[np.ndarray]:
             return _read_ahead(_dying(iter_frames(path, max_frames=limit), doomed))
@@ -171,31 +240,12 @@ class VideoTracker:
         return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
 
     def _in_memory(self, path: str, queries: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """For containers that do not state their length: the whole video at once."""
+        """For containers that do not state their length (or state a wrong one)."""
         from taptr.io.video import read_video
 
         frames = read_video(path, max_frames=self.options.max_frames)
         result = self.predictor.track(frames, queries, backward=self.options.backward)
         return result.tracks[0].numpy(), result.visibility[0].numpy()
-
-
-def _outcome(
-    row: dict[str, Any],
-    status: str,
-    error: str,
-    shape: tuple[int, int],
-    started: float,
-    attempts: int,
-) -> dict[str, Any]:
-    return {
-        "video_id": str(row["video_id"]),
-        "status": status,
-        "error": error,
-        "frames": int(shape[0]),
-        "points": int(shape[1]),
-        "seconds": time.perf_counter() - started,
-        "attempts": attempts,
-    }
 
 
 def _doomed(video_id: str, attempt: int) -> bool:
