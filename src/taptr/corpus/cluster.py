@@ -17,7 +17,7 @@ import socket
 from collections.abc import Iterator
 from dataclasses import dataclass
 from types import ModuleType
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from taptr.messages import error_line
 
@@ -31,7 +31,7 @@ PROCESS_BYTES = 768 * 2**20
 """A tracker actor's process before any video: Python, PyTorch, Ray's worker, the model's
 code (about 600 MiB resident measured on CPU actors)."""
 
-TYPICAL_CLIP = {"num_frames": 300, "frame_size": (720, 1280), "num_points": 256}
+TYPICAL_FRAMES, TYPICAL_SIZE, TYPICAL_POINTS = 300, (720, 1280), 256
 """The clip an actor's memory is sized for: 10 s of 720p at 30 fps, 256 query points."""
 
 
@@ -124,7 +124,7 @@ def joined(ray: ModuleType, address: str | None) -> Iterator[None]:
 
 
 def actor_memory(predictor: Predictor) -> int:
-    """Bytes one tracker actor needs: its process and a typical clip's run (`TYPICAL_CLIP`)."""
+    """Bytes one tracker actor needs: its process and a typical clip's run (`TYPICAL_FRAMES`)."""
     from taptr.memory_estimate import estimate_tracking
 
     config = predictor.model.config
@@ -134,9 +134,9 @@ def actor_memory(predictor: Predictor) -> int:
     run = estimate_tracking(
         config,
         input_size=predictor.input_size,
-        num_frames=TYPICAL_CLIP["num_frames"],
-        num_points=TYPICAL_CLIP["num_points"] + predictor.context_points,
-        frame_size=TYPICAL_CLIP["frame_size"],
+        num_frames=TYPICAL_FRAMES,
+        num_points=TYPICAL_POINTS + predictor.context_points,
+        frame_size=TYPICAL_SIZE,
         whole_video=False,
     )
     return PROCESS_BYTES + weights + run.total
@@ -154,7 +154,8 @@ def plan_actors(ray: ModuleType, actors: int | None, shape: ActorShape) -> int:
     capacity = sum(fits)
     asked = _describe(shape)
     if capacity == 0:
-        largest = max(nodes, key=lambda r: (r.get("GPU", 0), r.get("CPU", 0)), default={})
+        empty: dict[str, float] = {}
+        largest = max(nodes, key=lambda r: (r.get("GPU", 0), r.get("CPU", 0)), default=empty)
         raise ValueError(
             f"no node of the cluster can hold one tracker actor ({asked}); the largest has "
             f"{_have(largest)}: lower --cpus-per-actor, --gpus-per-actor or "
@@ -190,7 +191,7 @@ def _have(resources: dict[str, float]) -> str:
     return f"{resources.get('CPU', 0):g} CPU{gpus}, {memory:.1f} GiB"
 
 
-def _restore(handlers: dict[int, object]) -> None:
+def _restore(handlers: dict[signal.Signals, Any]) -> None:
     for number, handler in handlers.items():
         if handler is not None:
             signal.signal(number, handler)  # type: ignore[arg-type]
