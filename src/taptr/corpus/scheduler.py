@@ -66,7 +66,16 @@ class SchedulerOptions:
 
 @dataclass
 class Slot:
-    """One actor as the driver sees it."""
+    """One actor as the driver sees it.
+
+    Attributes:
+        handle: the actor (None once dropped); ready: its start, until it has loaded its
+            model (then None); since: when it was started; writer: its writer id.
+        call: the streaming call in flight; batch: that call's videos, in order;
+            current: the video it announced and has not finished; finished: those it did.
+        uncommitted: finished videos waiting in its part; parts: the parts it reported.
+        flushing: the call in flight is a flush.
+    """
 
     handle: Any
     ready: Any
@@ -129,12 +138,6 @@ class Scheduler:
         self.first_ready: float | None = None
         self.stopping = False
         self.driver_pending: dict[int, Finished] = {}  # failures the driver decided
-
-    @property
-    def remaining(self) -> int:
-        """Videos not yet committed (queued, in flight or waiting in a part)."""
-        in_flight = sum(len(s.batch) - len(s.finished) + len(s.uncommitted) for s in self.slots)
-        return len(self.queue) + len(self.alone) + in_flight
 
     def step(self) -> bool:
         """Hands out work and handles what arrived within `WAIT_SECONDS`; False when done."""
