@@ -130,7 +130,8 @@ def _scenario(scenario: str, count: int, folder: Path, actors: int) -> dict:
     expected = count if scenario == "done" else 0
     assert summary.done == expected and summary.done + summary.failed == count, summary.line()
     result = {"scenario": scenario, "videos": count, **timings,
-              "job_per_video_ms": 1000 * timings["job_s"] / count}  # fmt: skip
+              "job_per_video_ms": 1000 * timings["job_s"] / count,
+              "driver_peak_rss_job_mib": _peak_mib()}  # fmt: skip
     if scenario == "done":
         started = time.perf_counter()
         layout = ResultLayout.at(out)
@@ -141,6 +142,7 @@ def _scenario(scenario: str, count: int, folder: Path, actors: int) -> dict:
         again = track_corpus(videos, _no_model, options, print_line=_quiet, worker=StandInWorker)
         result["rerun_s"] = time.perf_counter() - started
         assert again.skipped == count
+        result["driver_peak_rss_rerun_mib"] = _peak_mib()
         import pandas as pd
 
         started = time.perf_counter()
@@ -148,8 +150,13 @@ def _scenario(scenario: str, count: int, folder: Path, actors: int) -> dict:
         result["pandas_open_s"] = time.perf_counter() - started
         assert len(frame) == count
         result["parts"] = len(list((folder / "out" / "tracks").iterdir()))
-    result["driver_peak_rss_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    result["peak_rss_with_pandas_mib"] = _peak_mib()  # the benchmark's own frame included
     return result
+
+
+def _peak_mib() -> float:
+    """This process's peak resident memory so far (the driver's, plus the benchmark's)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
 def _clips(folder: Path) -> list[str]:
