@@ -102,25 +102,36 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     """Runs the cases and prints the table."""
     check_bench_arguments(args)
-    from taptr.apps.benchmark import (
-        BenchConfig,
-        compare,
-        compare_types,
-        format_table,
-        machine,
-        peak_flops,
-        run_isolated,
-        seconds_per_frame_at,
-        write_json,
-    )
-    from taptr.config import get_config
+    from taptr.apps.benchmark import format_table, machine, peak_flops, write_json
 
     command = "taptr " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     if args.count_ops:
         return count_ops(args, command)
-    rows, cases = [], []
     if len(args.dtype) > 1 and args.execution == "both":
         raise ValueError("several --dtype values compare one --execution (fast or reference)")
+    rows, cases = _run_cases(args)
+    print(format_table(rows))
+    _print_growth(rows)
+    _print_comparisons(cases, args.dtype[0])
+    rate = peak_flops(args.threads) if args.device == "cpu" else None
+    if rate:
+        _print_flops(rows, rate, args.threads)
+    print(f"command: {command}")
+    if args.json:
+        write_json(
+            args.json,
+            {"command": command, "machine": machine(), "peak_flops": rate, "cases": cases},
+        )
+    return 0
+
+
+def _run_cases(args: argparse.Namespace) -> tuple[list, list[dict]]:
+    """Runs every (preset, points, history) case; returns the table's rows and the cases."""
+    from taptr.apps.benchmark import BenchConfig, compare, compare_types, run_isolated
+    from taptr.config import get_config
+
+    rows: list = []
+    cases: list[dict] = []
     cases_to_run = [
         (preset, points, history)
         for preset in args.preset
@@ -146,19 +157,21 @@ def run(args: argparse.Namespace) -> int:
         )
         if args.execution == "both":
             case = compare(config)
-            rows += list(case["results"].values())
-            cases.append({"preset": preset, "points": points, **case})
         elif len(args.dtype) > 1:
             chosen = BenchConfig(**{**config.__dict__, "execution": args.execution})
             case = compare_types(chosen, args.dtype)
-            rows += list(case["results"].values())
-            cases.append({"preset": preset, "points": points, **case})
         else:
-            chosen = args.execution
-            result = run_isolated(BenchConfig(**{**config.__dict__, "execution": chosen}))
-            rows.append(result)
-            cases.append({"preset": preset, "points": points, "results": {chosen: result}})
-    print(format_table(rows))
+            chosen = BenchConfig(**{**config.__dict__, "execution": args.execution})
+            case = {"results": {args.execution: run_isolated(chosen)}}
+        rows += list(case["results"].values())
+        cases.append({"preset": preset, "points": points, **case})
+    return rows, cases
+
+
+def _print_growth(rows: list) -> None:
+    """Seconds per frame at frame 24 and at the last frame, for runs longer than 24."""
+    from taptr.apps.benchmark import seconds_per_frame_at
+
     for row in rows:
         at_24, at_end = (seconds_per_frame_at(row, f) for f in (24, row.config["frames"]))
         if at_24 is not None and at_end is not None and row.config["frames"] > 24:
@@ -167,11 +180,15 @@ def run(args: argparse.Namespace) -> int:
                 f"history {row.config['history_frames']}: {at_24:.3f} s/frame at frame 24, "
                 f"{at_end:.3f} at frame {row.config['frames']}"
             )
+
+
+def _print_comparisons(cases: list[dict], dtype: str) -> None:
+    """Each case's other types against ``dtype``, and fast against reference."""
     for case in cases:
-        for dtype, change in case.get(f"against_{args.dtype[0]}", {}).items():
+        for other, change in case.get(f"against_{dtype}", {}).items():
             print(
-                f"{case['preset']} N={case['points']}: {dtype} {change['speedup']:.2f}x "
-                f"{args.dtype[0]}, peak RSS ratio {change['memory_ratio']:.2f}, positions moved "
+                f"{case['preset']} N={case['points']}: {other} {change['speedup']:.2f}x "
+                f"{dtype}, peak RSS ratio {change['memory_ratio']:.2f}, positions moved "
                 f"max {change['max_position_change_px']:.3f} px, median "
                 f"{change['median_position_change_px']:.4f} px, visibility decisions flipped "
                 f"{change['visibility_flips']} of {change['visibility_decisions']}"
@@ -184,24 +201,19 @@ def run(args: argparse.Namespace) -> int:
                 f"max |Δ position| {agreement['max_position_difference']:.2e}, "
                 f"visibility decisions equal: {agreement['visibility_decisions_equal']}"
             )
-    rate = peak_flops(args.threads) if args.device == "cpu" else None
-    if rate:
-        print(f"measured fp32 matmul peak: {rate / 1e9:.0f} GFLOP/s on {args.threads} threads")
-        for row in rows:
-            if row.flops:
-                achieved = row.flops / (row.seconds_per_frame * row.config["frames"])
-                print(
-                    f"  {row.config['preset']} {row.config['execution']} "
-                    f"N={row.config['points']}: "
-                    f"{achieved / 1e9:.0f} GFLOP/s = {achieved / rate:.0%} of peak"
-                )
-    print(f"command: {command}")
-    if args.json:
-        write_json(
-            args.json,
-            {"command": command, "machine": machine(), "peak_flops": rate, "cases": cases},
-        )
-    return 0
+
+
+def _print_flops(rows: list, rate: float, threads: int) -> None:
+    """The measured matmul peak and each row's share of it."""
+    print(f"measured fp32 matmul peak: {rate / 1e9:.0f} GFLOP/s on {threads} threads")
+    for row in rows:
+        if row.flops:
+            achieved = row.flops / (row.seconds_per_frame * row.config["frames"])
+            print(
+                f"  {row.config['preset']} {row.config['execution']} "
+                f"N={row.config['points']}: "
+                f"{achieved / 1e9:.0f} GFLOP/s = {achieved / rate:.0%} of peak"
+            )
 
 
 def count_ops(args: argparse.Namespace, command: str) -> int:

@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 import pickle
 
-from taptr.cli.model_options import CHECKPOINT_HELP
+from taptr.cli.model_options import CHECKPOINT_HELP, SUPPORT_CHOICES
 from taptr.cli.options import (
     add_device_argument,
     check_at_least,
@@ -36,7 +36,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     from taptr.eval.datasets import DATASETS
     from taptr.eval.metrics import QUERY_MODES
     from taptr.eval.runner import PROTOCOLS, TRACKERS
-    from taptr.types import AUTOCAST_TYPES
 
     parser = subparsers.add_parser(
         "eval",
@@ -66,6 +65,26 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="taptr: the model; static: points never move; lk: OpenCV Lucas-Kanade "
         "(default: taptr)",
     )
+    _add_model_arguments(parser)
+    parser.add_argument("--protocol", choices=PROTOCOLS, default="standard")
+    parser.add_argument("--max-videos", type=int, metavar="N", help="score only the first N videos")
+    parser.add_argument(
+        "--overlays",
+        type=int,
+        default=0,
+        metavar="K",
+        help="write ground truth | prediction overlay videos of the K worst videos "
+        "to OUT/overlays/",
+    )
+    add_device_argument(parser)
+    parser.add_argument("--out", required=True, help="output folder")
+    parser.set_defaults(func=run)
+
+
+def _add_model_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of the model the standard protocol runs."""
+    from taptr.types import AUTOCAST_TYPES
+
     parser.add_argument(
         "--checkpoint",
         help="for --tracker taptr, and required by --protocol official: a " + CHECKPOINT_HELP,
@@ -80,7 +99,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument(
         "--support",
-        choices=("auto", "random", "local_and_grid", "grid", "none"),
+        choices=SUPPORT_CHOICES,
         default="auto",
         help="standard protocol: the predictor's extra points around the queries (as "
         "taptr track --support; default: auto, the model's own)",
@@ -100,19 +119,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="standard protocol: run the model under autocast in this type (weights in "
         "float32; for GPUs) (default: float32, no autocast)",
     )
-    parser.add_argument("--protocol", choices=PROTOCOLS, default="standard")
-    parser.add_argument("--max-videos", type=int, metavar="N", help="score only the first N videos")
-    parser.add_argument(
-        "--overlays",
-        type=int,
-        default=0,
-        metavar="K",
-        help="write ground truth | prediction overlay videos of the K worst videos "
-        "to OUT/overlays/",
-    )
-    add_device_argument(parser)
-    parser.add_argument("--out", required=True, help="output folder")
-    parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -16,6 +16,7 @@ from taptr.cli.options import (
     check_device,
     check_input_size,
 )
+from taptr.config import SUPPORT_KINDS
 from taptr.types import AUTOCAST_TYPES, CAPTURE_CHOICES
 
 if TYPE_CHECKING:
@@ -34,8 +35,8 @@ CHECKPOINT_SUFFIXES = (".pth", ".pt", ".ckpt", ".bin", ".tar", ".pkl", ".safeten
 KERNEL_CHOICES = ("auto", "measure", "grid_sample", "gather")
 """``--kernel`` choices (`taptr.runtime.kernel_choice.CHOICES`; here so --help needs no torch)."""
 
-SUPPORT_CHOICES = ("auto", "random", "local_and_grid", "grid", "none")
-"""``--support`` choices (`taptr.api.predictor.SUPPORT_CHOICES` and ``auto``)."""
+SUPPORT_CHOICES = ("auto", *SUPPORT_KINDS)
+"""``--support`` choices: the model config's kinds and ``auto``."""
 
 
 def add_model_arguments(parser: argparse.ArgumentParser, max_frames: int | None = None) -> None:
