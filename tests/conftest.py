@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib.util
 import os
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -43,6 +44,40 @@ os.environ["TAPTR_MEASURED"] = os.path.join(
 if importlib.util.find_spec("huggingface_hub"):
     # it reads these once, at import: import it now, not inside a test that patches them
     importlib.import_module("huggingface_hub.constants")
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Registers ``cpu``: tests whose branch depends on the CPU's instructions."""
+    config.addinivalue_line(
+        "markers",
+        "cpu: the branch taken depends on the CPU's instructions (bfloat16, oneDNN); .ci/run "
+        "runs these again under each simulated CPU (TAPTR_CPU, taptr.model.ops.cpu_features)",
+    )
+
+
+@pytest.fixture
+def simulated_cpu() -> Iterator[Callable[[str | None], None]]:
+    """Call with a ``TAPTR_CPU`` level to run the test as on that CPU (None: as the run is).
+
+    The package's own override (`taptr.model.ops.cpu_features`): taptr then takes the
+    branches of a CPU without the instructions above the level. Restored afterwards.
+    """
+    from taptr.model.ops import cpu_features
+
+    before = os.environ.get(cpu_features.VARIABLE)
+
+    def simulate(level: str | None) -> None:
+        value = before if level is None else level
+        if value is None:
+            os.environ.pop(cpu_features.VARIABLE, None)
+        else:
+            os.environ[cpu_features.VARIABLE] = value
+        cpu_features.refresh()
+
+    try:
+        yield simulate
+    finally:
+        simulate(None)
 
 
 @pytest.fixture

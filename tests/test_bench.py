@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 
 import pytest
-import torch
 
 from taptr.cli.main import main
 
@@ -101,15 +100,26 @@ def test_gemm_floor_benchmark_runs_on_a_tiny_case(tmp_path):
     assert "floor" in stdout and "onednn sustained" in stdout
 
 
+@pytest.mark.cpu
 def test_the_machine_names_its_cpu_model(tmp_path):
     from taptr.apps.benchmark import cpu_name, machine
+    from taptr.model.ops.cpu_features import cpu_capability
 
     cpuinfo = tmp_path / "cpuinfo"
     cpuinfo.write_text("processor\t: 0\nvendor_id\t: AuthenticAMD\nmodel name\t: AMD EPYC 9R14\n")
     assert cpu_name(cpuinfo) == "AMD EPYC 9R14"
     cpuinfo.write_text("processor\t: 0\n")  # no model name: the architecture instead
     assert cpu_name(cpuinfo) == cpu_name(tmp_path / "missing") != ""
-    assert machine()["cpu_capability"] == torch.backends.cpu.get_cpu_capability()
+    # taptr's view of the CPU: PyTorch's, lowered by TAPTR_CPU when it is set
+    assert machine()["cpu_capability"] == cpu_capability()
+
+
+@pytest.mark.cpu
+def test_bench_refuses_bfloat16_on_a_cpu_without_it(simulated_cpu, capsys):
+    simulated_cpu("avx512")
+    argv = ["bench", "--preset", "tiny", "--frames", "9", "--points", "5", "--dtype", "bfloat16"]
+    assert main(argv) == 2
+    assert "this CPU has no native bfloat16" in capsys.readouterr().err
 
 
 def test_bench_refuses_float16_on_the_cpu(capsys):
@@ -118,6 +128,7 @@ def test_bench_refuses_float16_on_the_cpu(capsys):
     assert "--dtype float16 is CUDA autocast" in capsys.readouterr().err
 
 
+@pytest.mark.cpu
 def test_bench_compares_dtypes_in_one_command(tmp_path, capsys):
     from taptr.model.ops.dense import native_bfloat16
 

@@ -17,9 +17,12 @@ import taptr
 from taptr.model.ops import dense
 from tests.helpers import golden_inputs, load_golden, seed1_official_weights
 
-pytestmark = pytest.mark.skipif(
-    not dense.native_bfloat16(), reason="this CPU has no native bfloat16 products"
-)
+pytestmark = [
+    pytest.mark.cpu,
+    pytest.mark.skipif(
+        not dense.native_bfloat16(), reason="this CPU has no native bfloat16 products"
+    ),
+]
 
 BOUND_PX = 0.72
 

@@ -12,9 +12,10 @@ from taptr.runtime import cpu_choice
 from taptr.runtime.cpu_choice import choose_cpu_execution, time_layouts, time_products
 from taptr.runtime.measured_file import read_choices
 
-pytestmark = pytest.mark.skipif(
-    not dense.onednn_available(), reason="oneDNN inner products are x86-only"
-)
+pytestmark = [
+    pytest.mark.cpu,
+    pytest.mark.skipif(not dense.onednn_available(), reason="oneDNN inner products are x86-only"),
+]
 
 LARGE = (192, 192)  # at the channels-last threshold
 assert LARGE[0] * LARGE[1] >= CHANNELS_LAST_MIN_PIXELS

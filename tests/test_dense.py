@@ -14,6 +14,8 @@ from taptr.model.ops.dense import linear, onednn_applies, onednn_available
 
 ONEDNN_OP = "mkldnn::_linear_pointwise"
 
+pytestmark = pytest.mark.cpu
+
 needs_onednn = pytest.mark.skipif(
     not onednn_available(), reason="no oneDNN inner product on this CPU or build"
 )

@@ -23,6 +23,8 @@ from taptr.runtime.kernel_choice import choose_kernel, time_kernels
 
 QUERIES = torch.tensor([[0, 10.0, 20.0], [3, 40.0, 30.0], [5, 70.0, 50.0]])
 
+pytestmark = pytest.mark.cpu
+
 
 @pytest.fixture(scope="module")
 def model():
@@ -164,7 +166,9 @@ def test_the_clis_kernel_choices_are_the_models():
 
 
 def test_model_options_reach_the_predictor(monkeypatch, video):
+    # bfloat16 as on a CPU that has it, whatever this one has: nothing runs in it here
     monkeypatch.setattr("taptr.api.predictor.native_bfloat16", lambda: True)
+    monkeypatch.setattr("taptr.model.ops.dense.native_bfloat16", lambda: True)
     assert load_predictor(_model_args()).autocast is None
     # a number of frames per call: nothing is timed (in bfloat16, which this CPU may lack)
     predictor = load_predictor(

@@ -40,7 +40,8 @@ import torch
 from torch import Tensor, nn
 
 from taptr.memory_estimate import ALLOCATOR_WORDS
-from taptr.model.ops.dense import bfloat16_hardware, linear, onednn_applies
+from taptr.model.ops.cpu_features import bfloat16_hardware, cpu_capability, simulated
+from taptr.model.ops.dense import linear, onednn_applies
 from taptr.runtime.measured import cpu_name
 
 if TYPE_CHECKING:
@@ -376,10 +377,12 @@ def machine() -> dict[str, Any]:
         "python": platform.python_version(),
         "torch": torch.__version__,
         "cpu": cpu_name(),
-        "cpu_capability": torch.backends.cpu.get_cpu_capability(),
+        "cpu_capability": cpu_capability(),
         "cpu_count": os.cpu_count(),
         "cpu_bfloat16": bfloat16_hardware(),
     }
+    if simulated() is not None:  # a lesser CPU than the host, by TAPTR_CPU
+        info["cpu_simulated"] = simulated()
     if torch.cuda.is_available():
         info["cuda_device"] = torch.cuda.get_device_name()
     return info

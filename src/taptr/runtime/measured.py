@@ -29,6 +29,7 @@ from typing import Any
 
 import torch
 
+from taptr.model.ops.cpu_features import cpu_capability
 from taptr.runtime.measured_file import read_choices, write_choices
 
 TOLERANCE = 0.03
@@ -97,7 +98,7 @@ def device_name(device: torch.device) -> str:
     if device.type == "cuda":
         return torch.cuda.get_device_name(device)
     if device.type == "cpu":
-        capability = torch.backends.cpu.get_cpu_capability()
+        capability = cpu_capability()  # a CPU simulated by TAPTR_CPU keeps its own choices
         return f"{cpu_name()} ({capability}, {torch.get_num_threads()} threads)"
     return device.type
 

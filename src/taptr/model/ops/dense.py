@@ -49,8 +49,11 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 from torch.utils.flop_counter import register_flop_formula
 
+from taptr.model.ops.cpu_features import bfloat16_hardware, cpu_capability
+
 X86_CAPABILITIES = ("AVX2", "AVX512")
-"""``torch.backends.cpu.get_cpu_capability()`` values of the CPUs the oneDNN path serves."""
+"""``torch.backends.cpu.get_cpu_capability()`` values of the CPUs the oneDNN path serves
+(lowered by ``TAPTR_CPU``, `taptr.model.ops.cpu_features`)."""
 
 
 def _inner_product_flops(x_shape: torch.Size, w_shape: torch.Size, *args, **kwargs) -> int:
@@ -69,22 +72,17 @@ def onednn_available() -> bool:
     """Whether this PyTorch build and CPU have oneDNN's inner product (fixed per process)."""
     if not torch.backends.mkldnn.is_available():
         return False
-    if torch.backends.cpu.get_cpu_capability() not in X86_CAPABILITIES:
+    if cpu_capability() not in X86_CAPABILITIES:
         return False
     return hasattr(torch.ops.mkldnn, "_linear_pointwise")
 
 
-def bfloat16_hardware() -> dict[str, bool]:
-    """This CPU's bfloat16 instructions as PyTorch sees them: ``avx512_bf16``, ``amx``."""
-    return {
-        "avx512_bf16": bool(getattr(torch.cpu, "_is_avx512_bf16_supported", lambda: False)()),
-        "amx": bool(getattr(torch.cpu, "_is_amx_tile_supported", lambda: False)()),
-    }
-
-
 @functools.cache
 def native_bfloat16() -> bool:
-    """Whether this CPU multiplies bfloat16 natively (AVX512-BF16 or AMX) through oneDNN."""
+    """Whether this CPU multiplies bfloat16 natively (AVX512-BF16 or AMX) through oneDNN.
+
+    False where ``TAPTR_CPU`` takes both away (`taptr.model.ops.cpu_features`).
+    """
     if not onednn_available():
         return False
     has = any(bfloat16_hardware().values())

@@ -1,0 +1,93 @@
+"""What this CPU can do, as taptr sees it, and how to make it see less (``TAPTR_CPU``).
+
+Some of taptr's choices depend on the CPU's instructions: oneDNN's inner products serve x86
+CPUs with AVX2 or AVX-512 (`taptr.model.ops.dense.onednn_available`), and bfloat16 products
+need AVX512-BF16 or AMX (`taptr.model.ops.dense.native_bfloat16`). Each branch must work on
+every CPU, but a host only has one set of instructions, so ``TAPTR_CPU`` makes taptr take
+the branches of a lesser CPU: taptr then behaves as on a CPU whose best instructions are
+the level named, and every instruction above it is treated as missing. It only takes away:
+naming a level this CPU does not reach changes nothing.
+
+Levels, from least to most: ``default`` (no vector instructions taptr uses: the branch of
+ARM and other non-x86 CPUs, plain ``F.linear``), ``avx2``, ``avx512`` (AVX-512 without
+bfloat16), ``avx512_bf16``, ``amx``. For example ``TAPTR_CPU=avx512`` runs an AMD EPYC or
+a Sapphire Rapids Xeon as a Xeon without bfloat16 would run. PyTorch's own kernels are
+unchanged (``ATEN_CPU_CAPABILITY=avx2`` and ``ONEDNN_MAX_CPU_ISA=AVX2`` lower those, read by
+PyTorch when it starts). Read once per process, like the CPU itself; tests that change it
+call `refresh`.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+
+import torch
+
+VARIABLE = "TAPTR_CPU"
+"""The setting that lowers what taptr takes the CPU to have."""
+
+LEVELS = ("default", "avx2", "avx512", "avx512_bf16", "amx")
+"""``TAPTR_CPU``'s values, from the least capable CPU to the most."""
+
+_CAPABILITY_LEVEL = {"DEFAULT": "default", "AVX2": "avx2", "AVX512": "avx512"}
+"""``torch.backends.cpu.get_cpu_capability()`` → level (other values: no x86 level)."""
+
+
+@functools.cache
+def ceiling() -> str:
+    """The level ``TAPTR_CPU`` names, or ``amx`` (nothing taken away) when it is unset.
+
+    Raises:
+        ValueError: ``TAPTR_CPU`` is set to something else than one of `LEVELS`.
+    """
+    value = os.environ.get(VARIABLE, "").strip().lower()
+    if not value:
+        return LEVELS[-1]
+    if value not in LEVELS:
+        raise ValueError(f"{VARIABLE}={value!r} is no CPU level; choose from {', '.join(LEVELS)}")
+    return value
+
+
+def _allowed(level: str) -> bool:
+    """Whether instructions of ``level`` are left in by ``TAPTR_CPU``."""
+    return LEVELS.index(level) <= LEVELS.index(ceiling())
+
+
+def cpu_capability() -> str:
+    """``torch.backends.cpu.get_cpu_capability()``, lowered to ``TAPTR_CPU``'s level.
+
+    ``AVX512`` becomes ``AVX2`` under ``TAPTR_CPU=avx2``, and either becomes ``DEFAULT``
+    under ``TAPTR_CPU=default``; other values (an ARM CPU's) are as PyTorch says.
+    """
+    found = torch.backends.cpu.get_cpu_capability()
+    level = _CAPABILITY_LEVEL.get(found)
+    if level is None or _allowed(level):
+        return found
+    return ceiling().upper() if ceiling() in ("default", "avx2") else "AVX512"
+
+
+def bfloat16_hardware() -> dict[str, bool]:
+    """This CPU's bfloat16 instructions as PyTorch sees them: ``avx512_bf16``, ``amx``.
+
+    Each is False where ``TAPTR_CPU`` takes it away.
+    """
+    found = {
+        "avx512_bf16": bool(getattr(torch.cpu, "_is_avx512_bf16_supported", lambda: False)()),
+        "amx": bool(getattr(torch.cpu, "_is_amx_tile_supported", lambda: False)()),
+    }
+    return {name: has and _allowed(name) for name, has in found.items()}
+
+
+def simulated() -> str | None:
+    """The level ``TAPTR_CPU`` names when it takes anything away, for records; else None."""
+    return None if ceiling() == LEVELS[-1] else ceiling()
+
+
+def refresh() -> None:
+    """Reads ``TAPTR_CPU`` again, and forgets every answer that depended on it."""
+    from taptr.model.ops import dense
+
+    ceiling.cache_clear()
+    dense.onednn_available.cache_clear()
+    dense.native_bfloat16.cache_clear()
