@@ -242,6 +242,7 @@ def test_capture_is_checked():
         Predictor(build_model("tiny"), device="cpu", kernel="gather", capture="on")
 
 
+@pytest.mark.cpu
 def test_a_cpu_in_bfloat16_keeps_the_eager_step():
     from taptr.model.ops.dense import native_bfloat16
 

@@ -26,7 +26,7 @@ import math
 import time
 import weakref
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from typing import Any
 
 import torch
@@ -34,6 +34,7 @@ from torch import nn
 
 from taptr.model.trajectory import QuerySet
 from taptr.model.v3.decoder import HeldFrames
+from taptr.runtime.capture_timing import MIN_STEP_SECONDS, CaptureTiming
 from taptr.runtime.measured import TOLERANCE, choice_key, keep, kept_choice, synchronize
 from taptr.types import CAPTURE_CHOICES
 
@@ -54,42 +55,6 @@ GUESSED_GAIN = {"cuda": 0.5, "cpu": 0.15}
 BUCKET = 128
 """Captured runs pad their points up to a multiple of this, so that calls with nearby
 point counts replay the same captured step instead of capturing another."""
-
-
-@dataclass(frozen=True)
-class CaptureTiming:
-    """What the step costs eager and captured on one machine and shape.
-
-    Attributes:
-        eager_s: seconds per frame of the eager step.
-        captured_s: seconds per frame of the captured step (infinite: capturing failed).
-        capture_s: seconds the capture cost once (the latest seen: a second process
-            reads Inductor's cache and pays less than the first).
-    """
-
-    eager_s: float
-    captured_s: float
-    capture_s: float
-
-    def pays(self, frames: float) -> bool:
-        """Whether capturing is faster per frame and saves more than it costs over ``frames``."""
-        faster = self.captured_s < self.eager_s * (1 - TOLERANCE)
-        return faster and frames * (self.eager_s - self.captured_s) > self.capture_s
-
-    @staticmethod
-    def read(value: Any) -> CaptureTiming | None:
-        """The timing a kept value holds, or None for a value it could not be."""
-        if not isinstance(value, dict) or set(value) != {"eager_s", "captured_s", "capture_s"}:
-            return None
-        numbers = [value[k] for k in ("eager_s", "captured_s", "capture_s")]
-        if not all(isinstance(n, (int, float)) and not isinstance(n, bool) for n in numbers):
-            return None
-        if not all(n >= 0 and not math.isnan(n) for n in numbers):
-            return None
-        eager_s, captured_s, capture_s = (float(n) for n in numbers)
-        if not (math.isfinite(eager_s) and math.isfinite(capture_s)):
-            return None
-        return CaptureTiming(eager_s, captured_s, capture_s)
 
 
 BACKEND = "inductor"
@@ -197,6 +162,7 @@ class StepCapture:
         self.eager_times: list[float] = []
         self.captured_times: list[float] = []
         self.calls = 0
+        self.announced = False  # the compile's notice, said once
         if points is not None:
             self._look_up(points)
 
@@ -225,18 +191,8 @@ class StepCapture:
         return output
 
     def _captured_call(self, args: tuple[Any, ...]) -> Any:
-        if self.decoder not in _captured and self.setting == "auto":
-            cost = (
-                self.timing.capture_s
-                if self.timing
-                else GUESSED_CAPTURE_SECONDS[_kind(self.device)]
-            )
-            # a progress bar that stops for a minute needs a reason
-            logger.warning(
-                "compiling TAPTRv3's per-frame step to replay it (about %.0f s, once per "
-                "process; capture='off' or --capture off skips it)",
-                cost,
-            )
+        if self.decoder not in _captured and not self.announced:
+            self._announce()
         try:
             step = captured_step(self.decoder, self.device)
             if self.device.type == "cuda":
@@ -248,12 +204,25 @@ class StepCapture:
             self._give_up(error)
             return self.decoder(*args)
 
+    def _announce(self) -> None:
+        """Says, before the stall, that the step compiles and about how long it takes."""
+        timing = self.timing or CaptureTiming.read(kept_choice(self.key))
+        cost = timing.capture_s if timing else GUESSED_CAPTURE_SECONDS[_kind(self.device)]
+        # a progress bar that stops for a minute needs a reason, whichever setting asked
+        logger.warning(
+            "compiling TAPTRv3's per-frame step to replay it (about %.0f s, once per "
+            "process; capture='off' or --capture off skips it)",
+            cost,
+        )
+        self.announced = True
+
     def _give_up(self, error: Exception) -> None:
         line = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
         logger.warning("capturing TAPTRv3's per-frame step failed (%s): running it eagerly", line)
         self.captured = False
         if self.setting == "auto":  # kept, so that later runs do not try again
-            eager_s = self.timing.eager_s if self.timing else min(self.eager_times, default=0.0)
+            measured = min(self.eager_times, default=MIN_STEP_SECONDS)
+            eager_s = self.timing.eager_s if self.timing else max(measured, MIN_STEP_SECONDS)
             keep(self.key, asdict(CaptureTiming(eager_s, math.inf, 0.0)))
         self.measuring = False
 
