@@ -36,6 +36,7 @@ SECTIONS = {
     ],
     "Models and checkpoints": [
         "taptr.hub",
+        "taptr.hub_weights",
         "taptr.checkpoint",
         "taptr.config",
         "taptr.io.limits",

@@ -1,10 +1,9 @@
 """TAPTRv3's weights from Google Drive, end to end, against a fake Drive on 127.0.0.1.
 
-The fake answers as Drive does for a large file: ``/uc?export=download&id=ID`` gives a
-one-line HTML confirmation page (a ``download-form`` whose action and hidden fields make
-the download address), and only that address, with the page's hidden ``confirm`` and
-``uuid`` values, gives the file. gdown reads the page; ``TAPTR_DRIVE_URL`` (the testing
-hook of `taptr.drive`) points taptr at the fake. Nothing leaves the machine.
+The fake (`tests.fake_drive`) answers as Drive does for a large file: a confirmation page
+first, the file at the address its form makes. ``TAPTR_DRIVE_URL`` (the testing hook of
+`taptr.drive`) points taptr at it. Nothing leaves the machine. Hostile servers (trickling,
+oversized, late) are in tests/test_download_bounds.py.
 """
 
 from __future__ import annotations
@@ -12,11 +11,8 @@ from __future__ import annotations
 import logging
 import socket
 import sys
-import threading
 import time
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
-from urllib.parse import parse_qs, urlsplit
 
 import pytest
 
@@ -24,100 +20,9 @@ import taptr
 from taptr import drive, hub
 from taptr.checkpoint import CheckpointError
 from taptr.model.v3 import TAPTRv3
+from tests.fake_drive import R18_ID, R50_ID, FakeDrive
 
 pytest.importorskip("gdown")
-
-R18_ID = "1frPX9R_nKDG8FmL-vH6l_2HsJfhvEjtg"
-R50_ID = "19iql2VTqGIeoyg_wt3JjpohszN5UE6s1"
-UUID = "5e1f-fake-uuid"
-
-
-class FakeDrive:
-    """Serves ``content`` behind Drive's confirmation page and records every request.
-
-    Args:
-        content: the file's bytes.
-        cut_at: send only this many bytes after announcing them all, then hang up.
-        kind: the file's Content-Type (``text/html`` makes it an error page).
-        quota: answer with Drive's download-quota page instead of the confirmation.
-        direct: serve the file at once, as Drive does for files it can scan (small ones).
-    """
-
-    def __init__(
-        self,
-        content: bytes,
-        cut_at: int | None = None,
-        kind: str = "",
-        quota: bool = False,
-        direct: bool = False,
-    ) -> None:
-        self.content, self.cut_at, self.quota, self.direct = content, cut_at, quota, direct
-        self.kind = kind or "application/octet-stream"
-        self.requests: list[str] = []
-        fake = self
-
-        class Handler(BaseHTTPRequestHandler):
-            def do_GET(self):
-                url = urlsplit(self.path)
-                query = {k: v[0] for k, v in parse_qs(url.query).items()}
-                fake.requests.append(url.path)
-                if url.path == "/uc" and fake.direct:
-                    self._file()
-                elif url.path == "/uc" and query.get("id") in (R18_ID, R50_ID):
-                    self._send(200, "text/html; charset=utf-8", fake.page(query["id"]).encode())
-                elif url.path == "/download" and query.get("confirm") == "t":
-                    if query.get("uuid") != UUID:
-                        self._send(403, "text/plain", b"no uuid")
-                    else:
-                        self._file()
-                else:
-                    self._send(404, "text/plain", b"not found")
-
-            def _send(self, status: int, kind: str, body: bytes) -> None:
-                self.send_response(status)
-                self.send_header("Content-Type", kind)
-                self.send_header("Content-Length", str(len(body)))
-                self.end_headers()
-                self.wfile.write(body)
-
-            def _file(self) -> None:
-                self.send_response(200)
-                self.send_header("Content-Type", fake.kind)
-                self.send_header("Content-Disposition", 'attachment; filename="weights.pth"')
-                self.send_header("Content-Length", str(len(fake.content)))
-                self.end_headers()
-                self.wfile.write(fake.content[: fake.cut_at])
-                self.wfile.flush()
-                self.close_connection = True
-
-            def log_message(self, *args):
-                pass
-
-        self.server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-        self.url = f"http://127.0.0.1:{self.server.server_address[1]}"
-        threading.Thread(target=self.server.serve_forever, daemon=True).start()
-
-    def page(self, file_id: str) -> str:
-        """Drive's virus-scan warning for a large file, on one line as Drive sends it."""
-        if self.quota:
-            return (
-                "<!DOCTYPE html><html><head><title>Google Drive - Quota exceeded</title></head>"
-                '<body><p class="uc-error-caption">Sorry, you can&#39;t view or download this '
-                'file at this time.</p><p class="uc-error-subcaption">Too many users have '
-                "viewed or downloaded this file recently.</p></body></html>"
-            )
-        fields = {"id": file_id, "export": "download", "confirm": "t", "uuid": UUID}
-        hidden = "".join(f'<input type="hidden" name="{k}" value="{v}">' for k, v in fields.items())
-        return (
-            "<!DOCTYPE html><html><head><title>Google Drive - Virus scan warning</title></head>"
-            "<body><p>Google Drive can't scan this file for viruses.</p>"
-            f'<form id="download-form" action="{self.url}/download" method="get">'
-            f'<input type="submit" value="Download anyway">{hidden}</form></body></html>'
-        )
-
-    def close(self) -> None:
-        self.server.shutdown()
-        self.server.server_close()
 
 
 @pytest.fixture
@@ -222,6 +127,8 @@ def test_another_models_weights_are_refused_with_what_they_are(
     message = str(raised.value)
     assert "holds TAPTRv2 (ResNet-50 backbone, C = 256)" in message
     assert "taptrv3-official is TAPTRv3 (ResNet-18 backbone, C = 256)" in message
+    # issue 45: the refused download was never kept, so there is nothing to delete
+    assert "nothing was kept" in message and "delete" not in message
     serve(official_v3_checkpoint.read_bytes())  # ResNet-18 under the ResNet-50 name
     with pytest.raises(CheckpointError, match=r"holds TAPTRv3 \(ResNet-18.*is TAPTRv3 \(ResNet-50"):
         taptr.from_pretrained("taptrv3-r50-official")

@@ -7,6 +7,7 @@ a commit, the file under ``snapshots/<commit>/``).
 
 from __future__ import annotations
 
+import logging
 import os
 import shutil
 import socket
@@ -129,10 +130,15 @@ def test_sha256_is_checked_when_registered(offline, cached_taptrv2, monkeypatch)
         hub.weights_path("taptrv2-official", cache_dir=offline)
 
 
-def test_taptrv1_resolves_its_file(offline):
+def test_taptrv1_resolves_its_file_and_a_bad_one_is_moved_aside(offline, caplog):
     path = place_in_cache(offline, "HYeungLee/TAPTR-Series", "taptrv1.pth")
-    path.write_bytes(b"not read by this test")
-    assert hub.weights_path("taptrv1-official", cache_dir=offline) == path
+    path.write_bytes(b"not the weights: cut short")
+    with caplog.at_level(logging.WARNING), pytest.raises(FileNotFoundError, match=r"taptrv1\.pth"):
+        hub.weights_path("taptrv1-official", cache_dir=offline)
+    aside = path.with_name("taptrv1.pth.rejected")
+    assert not path.exists() and aside.read_bytes() == b"not the weights: cut short"
+    lines = [r.getMessage() for r in caplog.records if "moved aside" in r.getMessage()]
+    assert len(lines) == 1 and "a transfer cut short" in lines[0] and str(aside) in lines[0]
 
 
 @pytest.mark.skipif("taptrv1" not in PRESETS, reason="no TAPTR v1 in this taptr")

@@ -7,6 +7,7 @@ Nothing leaves the machine.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import logging
 import socket
@@ -28,25 +29,53 @@ RESOLVE = "/HYeungLee/TAPTR-Series/resolve/main/taptrv2.pth"
 
 
 class FakeHub:
-    """Serves one file at the Hub's address of taptrv2.pth and counts the requests."""
+    """Serves one file at the Hub's address of taptrv2.pth and counts the requests.
 
-    def __init__(self, content: bytes, etag: str | None = None) -> None:
+    Args:
+        content: the file's bytes.
+        etag: its digest as the Hub states it (default: the content's).
+        declared: the size its HEAD states (default: the content's).
+        trickle: seconds between single bytes of the file, for ``trickle_for`` seconds.
+        trickle_for: how long it trickles before it sends the rest.
+    """
+
+    def __init__(
+        self,
+        content: bytes,
+        etag: str | None = None,
+        declared: int | None = None,
+        trickle: float | None = None,
+        trickle_for: float = 5.0,
+    ) -> None:
         self.content = content
         self.etag = etag or hashlib.sha256(content).hexdigest()
+        self.declared, self.trickle, self.trickle_for = declared, trickle, trickle_for
         self.requests: list[str] = []
+        self.closing = threading.Event()
         hub_self = self
 
         class Handler(BaseHTTPRequestHandler):
             def do_HEAD(self):
                 hub_self.requests.append("HEAD")
-                self._headers()
+                self._headers(hub_self.declared)
 
             def do_GET(self):
                 hub_self.requests.append("GET")
                 if self._headers():
-                    self.wfile.write(hub_self.content)
+                    with contextlib.suppress(OSError):  # a client that gave up
+                        self._body()
 
-            def _headers(self) -> bool:
+            def _body(self) -> None:
+                data, until = hub_self.content, time.monotonic() + hub_self.trickle_for
+                while hub_self.trickle and data and time.monotonic() < until:
+                    if hub_self.closing.wait(hub_self.trickle):
+                        return
+                    self.wfile.write(data[:1])
+                    self.wfile.flush()
+                    data = data[1:]
+                self.wfile.write(data)
+
+            def _headers(self, declared: int | None = None) -> bool:
                 if self.path.split("?")[0] != RESOLVE:
                     self.send_response(404)
                     self.send_header("Content-Length", "0")
@@ -56,7 +85,8 @@ class FakeHub:
                 self.send_header("X-Repo-Commit", COMMIT)
                 self.send_header("ETag", f'"{hub_self.etag}"')
                 self.send_header("X-Linked-Etag", f'"{hub_self.etag}"')
-                self.send_header("Content-Length", str(len(hub_self.content)))
+                size = len(hub_self.content) if declared is None else declared
+                self.send_header("Content-Length", str(size))
                 self.end_headers()
                 return True
 
@@ -64,11 +94,13 @@ class FakeHub:
                 pass
 
         self.server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.server.daemon_threads = True
         self.url = f"http://127.0.0.1:{self.server.server_address[1]}"
         self.thread = threading.Thread(target=self.server.serve_forever, daemon=True)
         self.thread.start()
 
     def close(self) -> None:
+        self.closing.set()
         self.server.shutdown()
         self.server.server_close()
 
@@ -86,8 +118,8 @@ def online(monkeypatch, tmp_path) -> Path:
     return cache
 
 
-def serve(monkeypatch, content: bytes, etag: str | None = None) -> FakeHub:
-    fake = FakeHub(content, etag)
+def serve(monkeypatch, content: bytes, etag: str | None = None, **options) -> FakeHub:
+    fake = FakeHub(content, etag, **options)
     monkeypatch.setenv("HF_ENDPOINT", fake.url)
     return fake
 
@@ -196,3 +228,44 @@ def test_warnings_are_prefixed_on_the_command_line():
     assert LevelFormatter().format(record) == "taptr: warning: rough tracks"
     record.levelno = logging.INFO
     assert LevelFormatter().format(record) == "rough tracks"
+
+
+# -- issue 45: a Hub that misbehaves ends in seconds ---------------------------------------
+
+
+def test_a_hub_declaring_far_more_than_the_release_is_refused_before_the_transfer(
+    online, monkeypatch, official_checkpoint
+):
+    fake = serve(monkeypatch, official_checkpoint.read_bytes(), declared=2 * 1024**3)
+    try:
+        with pytest.raises(FileNotFoundError) as raised:
+            hub.weights_path("taptrv2-official", cache_dir=online)
+    finally:
+        fake.close()
+    message = str(raised.value)
+    assert "the download was refused: the Hub declares 2,147,483,648 bytes" in message
+    assert fake.requests == ["HEAD"]  # nothing fetched
+    # the default falls back at once and says why
+    fake = serve(monkeypatch, official_checkpoint.read_bytes(), declared=2 * 1024**3)
+    try:
+        choice = hub.load_model(None, cache_dir=online)
+    finally:
+        fake.close()
+    assert choice.name == "taptr-small-synthetic" and "the download was refused" in choice.notice
+
+
+def test_a_trickling_hub_is_stopped_by_the_least_rate(online, monkeypatch, official_checkpoint):
+    monkeypatch.setenv("TAPTR_DOWNLOAD_TIMEOUT", "0.5")
+    monkeypatch.setenv("TAPTR_DOWNLOAD_MIN_RATE", "64M")  # the Hub reports every 10 MB
+    fake = serve(monkeypatch, official_checkpoint.read_bytes(), trickle=0.01, trickle_for=8.0)
+    started = time.perf_counter()
+    try:
+        with pytest.raises(FileNotFoundError) as raised:
+            hub.weights_path("taptrv2-official", cache_dir=online)
+    finally:
+        fake.close()
+    assert time.perf_counter() - started < 4.0
+    message = str(raised.value)
+    assert "the download of taptrv2-official was stopped" in message
+    assert "TAPTR_DOWNLOAD_MIN_RATE" in message
+    assert not any(p.is_file() for p in online.rglob("taptrv2.pth"))

@@ -33,12 +33,10 @@ Nothing is downloaded at import. ``HF_ENDPOINT`` and ``HF_HUB_OFFLINE`` are read
 
 from __future__ import annotations
 
-import hashlib
 import importlib.util
 import logging
 import os
 import re
-from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 from typing import NamedTuple
@@ -47,55 +45,19 @@ import torch
 
 from taptr.checkpoint import CheckpointError, load_checkpoint_and_threshold
 from taptr.config import PRESETS
-from taptr.drive_weights import (
-    IDEA_LICENCE,
-    MANUAL,
-    check_download,
-    manual_path,
+from taptr.drive_weights import MANUAL, check_download, manual_path
+from taptr.hub_weights import (  # noqa: F401 (re-exported: taptr.hub is their home for callers)
+    PROBE_TIMEOUT,
+    WEIGHTS,
+    HubWeights,
+    file_sha256,
+    hub_offline,
+    weights_path,
 )
 from taptr.model.build import build_model
 from taptr.model.taptr import TAPTR
 
 logger = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class HubWeights:
-    """Weights published as one file of a Hugging Face Hub repository.
-
-    Attributes:
-        repo_id: the Hub repository, ``owner/name``.
-        filename: the file inside it.
-        preset: the architecture the file holds (a key of `taptr.config.PRESETS`).
-        title: the model's name in messages.
-        licence: the weights' licence, named before a download.
-        sha256: hex digest of the file, checked after download when set.
-    """
-
-    repo_id: str
-    filename: str
-    preset: str
-    title: str
-    licence: str
-    sha256: str | None = None
-
-    @property
-    def url(self) -> str:
-        """Direct download address of the file."""
-        return f"https://huggingface.co/{self.repo_id}/resolve/main/{self.filename}"
-
-
-# the authors publish both generations in one repository; digests are added once the
-# published files are verified, and are checked from then on
-WEIGHTS = {
-    "taptrv2-official": HubWeights(
-        "HYeungLee/TAPTR-Series", "taptrv2.pth", "taptrv2", "TAPTRv2", IDEA_LICENCE
-    ),
-    "taptrv1-official": HubWeights(
-        "HYeungLee/TAPTR-Series", "taptrv1.pth", "taptrv1", "TAPTR v1", IDEA_LICENCE
-    ),
-}
-"""Weights on the Hugging Face Hub: name → where the file is and what it holds."""
 
 
 BUNDLED = {"taptr-small-synthetic": ("taptr-small-synthetic.pth", "small")}
@@ -106,11 +68,6 @@ DEFAULT_MODEL = "taptrv2-official"
 
 FALLBACK_MODEL = "taptr-small-synthetic"
 """What runs instead when the default cannot be had."""
-
-PROBE_TIMEOUT = 5.0
-"""Seconds to wait for the Hub before falling back (one attempt)."""
-
-_SHA256 = re.compile(r"^[0-9a-f]{64}$")
 
 
 class ModelChoice(NamedTuple):
@@ -136,9 +93,6 @@ def _from_file(path: str | os.PathLike[str], name: str, preset: str | None = Non
     expected = (name, preset) if preset is not None else None
     model, threshold = load_checkpoint_and_threshold(path, expected=expected)
     return ModelChoice(model, name, Path(path), visibility_threshold=threshold)
-
-
-_TRUE = {"1", "on", "yes", "true"}
 
 
 def bundled_path(name: str) -> Path | None:
@@ -167,11 +121,11 @@ def download(name: str, *, cache_dir: str | os.PathLike[str] | None = None) -> P
     """
     if name in WEIGHTS:
         path = _published_path(name, cache_dir)
-        check_download(path, name, WEIGHTS[name].preset)
+        check_download(path, name, WEIGHTS[name].preset, kept=True)
         return path
     if name in MANUAL:
         path = manual_path(name)
-        check_download(path, name, MANUAL[name].preset)
+        check_download(path, name, MANUAL[name].preset, kept=True)
         return path
     if name in BUNDLED:
         path = bundled_path(name)
@@ -181,138 +135,6 @@ def download(name: str, *, cache_dir: str | os.PathLike[str] | None = None) -> P
     names = ", ".join([*WEIGHTS, *MANUAL, *BUNDLED])
     what = "a preset: untrained, it has no weights" if name in PRESETS else "not a known name"
     raise KeyError(f"{name!r} is {what}; named weights: {names}")
-
-
-def hub_offline() -> bool:
-    """Whether Hub downloads are disabled (``HF_HUB_OFFLINE``, read now, not at import)."""
-    if os.environ.get("HF_HUB_OFFLINE", "").strip().lower() in _TRUE:
-        return True
-    try:
-        from huggingface_hub import constants
-    except ImportError:
-        return False
-    return bool(constants.HF_HUB_OFFLINE)
-
-
-def file_sha256(path: str | os.PathLike[str]) -> str:
-    """Hex SHA-256 of a file, read in 1 MiB blocks."""
-    digest = hashlib.sha256()
-    with Path(path).open("rb") as stream:
-        for block in iter(lambda: stream.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
-def _missing_message(name: str, entry: HubWeights, cache: str, reason: str) -> str:
-    """What to download and where to put it, for a published file that cannot be had."""
-    folder = Path(cache) / f"models--{entry.repo_id.replace('/', '--')}"
-    digest = f" (SHA-256 {entry.sha256})" if entry.sha256 else ""
-    return (
-        f"{name}: {entry.filename} is not in the Hugging Face cache ({cache}) and {reason}. "
-        f"Download {entry.url}{digest}, then either pass its path "
-        f'(taptr.from_pretrained("/path/to/{entry.filename}"), or --checkpoint on the command '
-        f"line), or fill the cache on a machine with network access "
-        f"(`hf download {entry.repo_id} {entry.filename}`) and copy its folder {folder.name} "
-        f"to {folder}"
-    )
-
-
-def weights_path(name: str, *, cache_dir: str | os.PathLike[str] | None = None) -> Path:
-    """The local file of published weights ``name``, downloaded only when needed and allowed.
-
-    The cache is read first, without a request. Otherwise (and not offline) the Hub is asked
-    once, within `PROBE_TIMEOUT` seconds, then the file is downloaded with a progress bar
-    after a one-line notice of its licence, and checked against its SHA-256 (a corrupt file
-    is deleted from the cache).
-
-    Args:
-        name: a key of `WEIGHTS`.
-        cache_dir: Hugging Face cache folder (default: the Hub's, ``HF_HUB_CACHE``).
-
-    Raises:
-        KeyError: ``name`` is not published weights.
-        FileNotFoundError: not cached and offline (or the Hub could not be reached, or the
-            download failed); says which file to download and where to put it.
-        ModuleNotFoundError: ``huggingface_hub`` is missing (``pip install 'taptr[hub]'``).
-        CheckpointError: the file does not have its SHA-256.
-    """
-    entry = WEIGHTS[name]
-    try:
-        from huggingface_hub import constants, hf_hub_download
-    except ImportError:
-        raise ModuleNotFoundError(
-            f"{name} is fetched with huggingface_hub: pip install 'taptr[hub]', or download "
-            f"{entry.url} yourself and pass the file's path"
-        ) from None
-    cache = Path(cache_dir) if cache_dir is not None else None
-    try:
-        path = Path(
-            hf_hub_download(entry.repo_id, entry.filename, cache_dir=cache, local_files_only=True)
-        )
-    except Exception:
-        path = None
-    if path is not None:
-        _check_sha256(path, name, entry.sha256)
-        return path
-    folder = str(cache or constants.HF_HUB_CACHE)
-    if hub_offline():
-        reason = "downloads are disabled (HF_HUB_OFFLINE=1)"
-        raise FileNotFoundError(_missing_message(name, entry, folder, reason))
-    return _download(name, entry, cache, folder)
-
-
-def _download(name: str, entry: HubWeights, cache: Path | None, folder: str) -> Path:
-    """One probe of the Hub, then the download and its SHA-256 check."""
-    from huggingface_hub import get_hf_file_metadata, hf_hub_download, hf_hub_url
-
-    # read now: huggingface_hub reads HF_ENDPOINT once, at its import
-    endpoint = os.environ.get("HF_ENDPOINT") or None
-    url = hf_hub_url(entry.repo_id, entry.filename, endpoint=endpoint)
-    try:
-        # a single request with a short timeout: hf_hub_download alone retries for ~25 s
-        metadata = get_hf_file_metadata(url, timeout=PROBE_TIMEOUT, endpoint=endpoint)
-    except Exception as error:
-        reason = f"the Hub could not be reached ({_first_line(error)})"
-        raise FileNotFoundError(_missing_message(name, entry, folder, reason)) from None
-    logger.warning(
-        "downloading %s weights (%s) from %s: %s, see https://huggingface.co/%s",
-        entry.title,
-        entry.filename,
-        url,
-        entry.licence,
-        entry.repo_id,
-    )
-    try:
-        path = Path(
-            hf_hub_download(
-                entry.repo_id,
-                entry.filename,
-                cache_dir=cache,
-                endpoint=endpoint,
-                etag_timeout=PROBE_TIMEOUT,
-            )
-        )
-    except Exception as error:
-        reason = f"the download failed ({_first_line(error)})"
-        raise FileNotFoundError(_missing_message(name, entry, folder, reason)) from None
-    hub_digest = (metadata.etag or "").lower()
-    _check_sha256(path, name, entry.sha256 or (hub_digest if _SHA256.match(hub_digest) else None))
-    return path
-
-
-def _check_sha256(path: Path, name: str, expected: str | None) -> None:
-    """Deletes ``path`` from the cache and raises when its digest is not ``expected``."""
-    if expected is None:
-        return
-    found = file_sha256(path)
-    if found != expected.lower():
-        blob = path.resolve()
-        path.unlink(missing_ok=True)
-        blob.unlink(missing_ok=True)
-        raise CheckpointError(
-            f"{path} has SHA-256 {found}, but {name} is {expected}: the file is corrupt or "
-            "not the published one; it was deleted from the cache, try again"
-        )
 
 
 def _first_line(error: BaseException) -> str:
@@ -371,9 +193,9 @@ def load_model(
     if Path(name).is_file():
         return _from_file(name, name)
     if name in WEIGHTS:
-        return _from_file(_published_path(name, cache_dir), name, WEIGHTS[name].preset)
+        return _from_kept(_published_path(name, cache_dir), name, WEIGHTS[name].preset)
     if name in MANUAL:
-        return _from_file(manual_path(name), name, MANUAL[name].preset)
+        return _from_kept(manual_path(name), name, MANUAL[name].preset)
     if name in BUNDLED:
         return _bundled(name)
     if name in PRESETS:
@@ -382,6 +204,18 @@ def load_model(
     raise FileNotFoundError(
         f"no checkpoint file or model named {name!r}; known names: {', '.join(known_names())}"
     )
+
+
+def _from_kept(path: Path, name: str, preset: str) -> ModelChoice:
+    """`_from_file` of the file taptr keeps for ``name``; a refusal says what to delete."""
+    try:
+        return _from_file(path, name, preset)
+    except CheckpointError as error:
+        if "delete it" in str(error):
+            raise
+        raise CheckpointError(
+            f"{error}; {path} is taptr's copy of {name}: delete it and taptr fetches it again"
+        ) from None
 
 
 def resolve_model(
@@ -414,7 +248,11 @@ def _reason(error: BaseException) -> str:
         return "the download was corrupt" if "SHA-256" in text else _first_line(error)
     if "HF_HUB_OFFLINE" in text:
         return "not in the Hugging Face cache and HF_HUB_OFFLINE=1"
-    found = re.search(r"and (the Hub could not be reached|the download failed)", text)
+    found = re.search(
+        r"and (the Hub could not be reached|the download (?:failed|was refused)"
+        r"|the download of \S+ was (?:stopped|refused))",
+        text,
+    )
     return f"not in the Hugging Face cache and {found.group(1)}" if found else _first_line(error)
 
 
