@@ -8,7 +8,8 @@ traceback, and a result that fails its validity check (NaN tracks, wrong shape o
 silent wrong output. `tests/test_fuzz.py` asserts that nothing is a traceback or silent;
 `scripts/fuzz_report.py` counts the outcomes. The categories of issue 29 (decoders by content,
 lying sizes, logical views, special files, resource estimates) are in `tests.fuzz_hostile`;
-its `memory_bound` oracle (peak RSS growth per input) applies to every category.
+its `memory_bound` oracle (peak RSS growth per input) applies to every category. Issue 45's
+(kept capture timings, downloads from a misbehaving Drive) are in `tests.fuzz_downloads`.
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ import torch
 from hypothesis import strategies as st
 
 from taptr.io.safe_pickle import ALLOWED
-from tests import bombs, fuzz_hostile, fuzz_options
+from tests import bombs, fuzz_downloads, fuzz_hostile, fuzz_options
 from tests.fuzz_hostile import SilentError, memory_bound
 
 CLEAN = (ValueError, FileNotFoundError)
@@ -501,5 +502,6 @@ CATEGORIES: dict[str, tuple[Any, Callable[[Any], Any]]] = {
     "named weights, another architecture": (named_weights, read_named_weights),
     **fuzz_hostile.CATEGORIES,
     **fuzz_options.CATEGORIES,
+    **fuzz_downloads.CATEGORIES,
 }
 """Every fuzzed input category: (strategy, target)."""

@@ -14,8 +14,9 @@ import os
 import warnings
 
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 
+from tests import fuzz_downloads as downloads
 from tests import fuzz_hostile as hostile
 from tests import fuzz_options as options
 from tests import fuzz_targets as targets
@@ -107,6 +108,19 @@ def test_fuzz_result_folder_settings(entry):
 @given(options.bench_options())
 def test_fuzz_bench_options(argv):
     _run(options.check_bench, argv)
+
+
+@given(downloads.kept_timings())
+def test_fuzz_kept_capture_timings(value):
+    _run(downloads.run_over_kept_timing, value)
+
+
+# each example serves a download: a quarter of the profile's examples, at least 15
+@settings(max_examples=max(15, settings.default.max_examples // 4))
+@given(downloads.downloads)
+def test_fuzz_downloads_from_a_misbehaving_drive(case):
+    pytest.importorskip("gdown")
+    _run(downloads.download_from_misbehaving_drive, case)
 
 
 def test_every_category_is_fuzzed():

@@ -10,6 +10,9 @@ The rules, as ``taptr track --help`` states them:
   spaces or tabs (the output of ``numpy.savetxt`` reads as is); ``#`` starts a comment, and
   the first line may be a header such as ``t,x,y``. Any other line that is not three
   numbers is an error naming its line number, and so is a NaN or infinite number.
+- Frames are whole numbers, as Python reads the text into a double: ``47.0000001`` is an
+  error naming the value (queries are float32, which would round it to 47 silently), and
+  ``47.0`` or ``4.7e1`` is frame 47.
 
 Both stop at the limit of `taptr.query_checks.max_points` before building the array.
 `build_queries` turns any of ``taptr track``'s query options (these two, ``--grid``,
@@ -192,6 +195,9 @@ def _triple(fields: list[str], where: str) -> tuple[float, float, float]:
     if not all(abs(value) <= FLOAT32_MAX for value in values):
         # queries are float32: a larger number would become inf (numpy warns, then NaN)
         raise ValueError(f"{where}: a number beyond float32's range (±{FLOAT32_MAX:.3g})")
+    if values[0] != round(values[0]):
+        # checked before float32, which would read 47.0000001 as frame 47 without a word
+        raise ValueError(f"{where}: frame {fields[0]} is not a whole frame index")
     return values  # type: ignore[return-value]
 
 

@@ -1,9 +1,12 @@
 """The memory check of ``taptr track`` and ``taptr edit``, before the first frame is decoded.
 
 `check_run_memory` estimates the run's peak memory (`taptr.memory_estimate`) from the
-model, the input size, the frames and the points, refuses it with the command's own knobs
-when it exceeds the budget, and prints the estimate of large runs (a dense grid) so that
-a long run says what it will take before it starts.
+model, the input size, the frames and the points (the context points the model adds
+included), refuses it with the command's own knobs when it exceeds the budget, and prints
+the estimate of large runs (a dense grid, or many context points) so that a long run says
+what it will take before it starts. Context points cost time as tracked points do: 10,000
+of them on the paper's model took 17.8 s a frame, 12 times the 800 it was trained with,
+so a run with many more than the model's own says so, with that factor.
 """
 
 from __future__ import annotations
@@ -22,6 +25,13 @@ LARGE_RUN_BYTES = 2 * 1024**3
 
 LARGE_RUN_POINTS = 10_000
 """Runs with more points than this print their estimate first."""
+
+CONTEXT_FACTOR = 2
+"""Runs with more than this many times the model's own context points (and more than
+`CONTEXT_NOTED` points) print their estimate first, with what the extra points cost."""
+
+CONTEXT_NOTED = 1_000
+"""Fewer points than this take little time however many are context points."""
 
 
 def check_run_memory(
@@ -55,12 +65,33 @@ def check_run_memory(
         history_frames=predictor.history_frames,
     )
     what = f"tracking {points:,} points through {num_frames:,} frames at {height}x{width}"
+    fewer = f"track fewer points (now {num_points:,})"
+    if points > num_points and predictor.support_scheme(num_points) == "random":
+        fewer += f", fewer context points (--context-points, now {predictor.context_points:,})"
     knobs = (
-        f"lower --input-size (now {height} {width}), track fewer points (now {num_points:,}) "
+        f"lower --input-size (now {height} {width}), {fewer} "
         f"or fewer frames (--max-frames, now {num_frames:,})"
     )
     check_memory(estimate, what, knobs, predictor.device.type)
-    if estimate.total > LARGE_RUN_BYTES or num_points > LARGE_RUN_POINTS:
+    context = _context_note(predictor, num_points, points)
+    if estimate.total > LARGE_RUN_BYTES or num_points > LARGE_RUN_POINTS or context:
         budget, source = available_memory(predictor.device.type)
         of = f" of {gib(budget)} {source}" if budget is not None else ""
-        print(f"taptr: {what} needs {estimate.describe()}{of}", file=sys.stderr, flush=True)
+        line = f"taptr: {what} needs {estimate.describe()}{of}{context}"
+        print(line, file=sys.stderr, flush=True)
+
+
+def _context_note(predictor: Predictor, num_points: int, points: int) -> str:
+    """What the context points beyond the model's own cost in time, or "" for none to say."""
+    config = predictor.model.config
+    own = config.context_points if config is not None else 0
+    if predictor.support_scheme(num_points) != "random" or points <= num_points:
+        return ""
+    usual = max(own, num_points)  # what the model's own context would track
+    if points <= max(CONTEXT_FACTOR * usual, CONTEXT_NOTED):
+        return ""
+    return (
+        f"; {points - num_points:,} of the points are context points (--context-points "
+        f"{predictor.context_points}; the model's own: {own:,}): they cost time as tracked "
+        f"points do, each frame up to about {points / usual:.0f}x as long as with {usual:,}"
+    )
