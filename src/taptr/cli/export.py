@@ -1,10 +1,13 @@
-"""``taptr export --format onnx|torchscript --out DIR``: the per-window model step as graphs.
+"""``taptr export --format onnx|torchscript --out DIR``: the model's step as graphs.
 
-Writes three graphs (frames → memory, memory → initial point content, one window of the
-decoder with its carried state) and ``taptr-export.json`` (input size, window rules),
-enough for a sliding-window loop outside Python; ``taptr.export.graph_runner`` drives them with
-the model's own window driver. ``--check`` tracks the package's sample clip with both the
-model and the graphs and prints the largest differences and the time each took.
+TAPTR v1 and v2: three graphs (frames → memory, memory → initial point content, one window
+of the decoder with its carried state) and ``taptr-export.json`` (input size, window
+rules), enough for a sliding-window loop outside Python; ``taptr.export.graph_runner`` drives
+them with the model's own window driver. TAPTRv3 (ONNX): the frame encoder, the step that
+starts points and the per-frame decoder step with all its state as inputs and outputs,
+and a manifest with every rule of the frame loop, which ``taptr.export.OnnxTracker`` runs
+without torch. ``--check`` tracks the package's sample clip with both the model and the
+graphs and prints the largest differences and the time each took.
 """
 
 from __future__ import annotations
@@ -20,9 +23,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     """Registers the subcommand."""
     parser = subparsers.add_parser(
         "export",
-        help="export the per-window model step as ONNX or TorchScript graphs",
+        help="export the model's step as ONNX or TorchScript graphs",
         description="Writes encoder, init_points and decode_window graphs (batch 1; dynamic "
-        "frame and point counts) and taptr-export.json to --out. See docs/EXPORT.md.",
+        "frame and point counts) and taptr-export.json to --out; for TAPTRv3 (ONNX only) "
+        "encoder, start_points and decode_step graphs (dynamic point count and history "
+        "length) and a manifest of the frame loop. See docs/EXPORT.md.",
     )
     parser.add_argument("--format", required=True, choices=("onnx", "torchscript"))
     parser.add_argument("--out", required=True, help="output folder")
@@ -34,6 +39,15 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         metavar=("HEIGHT", "WIDTH"),
         default=None,
         help="frame size the graphs take (default: the model's, 512 512 for the paper model)",
+    )
+    parser.add_argument(
+        "--history-frames",
+        type=int,
+        default=None,
+        metavar="N",
+        help="TAPTRv3: the history limit the manifest gives the loop (past frames held per "
+        "point, the current one included, oldest dropped first; 0 holds every frame) "
+        "(default: the model's)",
     )
     parser.add_argument(
         "--check",
@@ -64,11 +78,17 @@ def run(args: argparse.Namespace) -> int:
     check_input_size(args.input_size)
     for flag in ("check_frames", "check_points", "repeats", "threads"):
         check_at_least(getattr(args, flag), 1, "--" + flag.replace("_", "-"))
+    if args.history_frames is not None:
+        check_at_least(args.history_frames, 0, "--history-frames")
+        if args.history_frames == 1:
+            raise ValueError("--history-frames must be 0 (the whole video) or at least 2")
     check_checkpoint_name(args.checkpoint)
     import torch
 
     from taptr.export.graphs import export_model
     from taptr.export.manifest import GRAPHS
+    from taptr.export.v3_manifest import GRAPHS as V3_GRAPHS
+    from taptr.export.v3_manifest import V3Manifest
     from taptr.export.verify import compare
     from taptr.hub import resolve_model
 
@@ -76,8 +96,9 @@ def run(args: argparse.Namespace) -> int:
         torch.set_num_threads(args.threads)
     model = resolve_model(args.checkpoint)
     began = time.perf_counter()
-    manifest = export_model(model, args.out, args.format, args.input_size)
-    files = ", ".join(manifest.graph_path(args.out, name).name for name in GRAPHS)
+    manifest = export_model(model, args.out, args.format, args.input_size, args.history_frames)
+    names = V3_GRAPHS if isinstance(manifest, V3Manifest) else GRAPHS
+    files = ", ".join(manifest.graph_path(args.out, name).name for name in names)
     height, width = manifest.input_size
     print(
         f"wrote {args.out}: {files}, taptr-export.json ({width}×{height} frames, "

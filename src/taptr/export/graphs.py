@@ -29,7 +29,9 @@ from torch import Tensor, nn
 
 from taptr.export.manifest import INPUT_NAMES, OUTPUT_NAMES, ExportFormat, ExportManifest
 from taptr.export.modules import FrameEncoder, PointInitializer, WindowDecoder, feature_shapes
+from taptr.export.v3_manifest import V3Manifest
 from taptr.model.taptr import TAPTR
+from taptr.model.v3.taptr import TAPTRv3
 
 ONNX_OPSET = 18
 """The dynamo exporter's opset; GridSample needs 16 or later."""
@@ -43,15 +45,13 @@ def prepare_for_export(model: TAPTR) -> TAPTR:
     """A float32 CPU copy in eval mode with export-friendly kernels; ``model`` is untouched.
 
     Raises:
-        NotExportableError: for a TAPTRv3 model (see the message).
+        NotExportableError: for a TAPTRv3 model, whose graphs differ
+            (`taptr.export.v3_graphs.prepare_v3`).
     """
-    if model.window_updater is None:  # TAPTRv3
+    if isinstance(model, TAPTRv3):
         raise NotExportableError(
-            "TAPTRv3 cannot be exported: its per-frame step reads each point's history of "
-            "past frames, which grows with the video (or slides with --history-frames), "
-            "while the exported graphs carry TAPTRv2's fixed window state (content handed "
-            "from window to window); track TAPTRv3 in PyTorch (taptr track, Predictor) or "
-            "export a TAPTRv2 model"
+            "TAPTRv3's per-frame step has graphs of its own: export it with "
+            "taptr.export.export_model(model, directory, 'onnx') (taptr.export.v3_graphs)"
         )
     prepared = copy.deepcopy(model).float().cpu().eval()
     # the reference execution: the grouped point attention loops over frames with
@@ -227,16 +227,34 @@ def export_model(
     directory: str | os.PathLike[str],
     format: ExportFormat,
     input_size: tuple[int, int] | None = None,
-) -> ExportManifest:
-    """Exports ``model``'s per-window step in ``format`` (``"onnx"`` or ``"torchscript"``).
+    history_frames: int | None = None,
+) -> ExportManifest | V3Manifest:
+    """Exports ``model``'s per-window step, or TAPTRv3's per-frame step, in ``format``.
+
+    TAPTRv3 goes through `taptr.export.v3_graphs.export_v3` (ONNX only).
 
     Args:
         model: the network (not modified).
         directory: output folder, created if needed.
         format: ``"onnx"`` or ``"torchscript"``.
         input_size: (H, W) of the frames the graphs take (default: the model config's).
+        history_frames: TAPTRv3: the manifest's history limit (default: the model's).
+
+    Raises:
+        ValueError: an unknown format, ``history_frames`` for another model.
+        NotExportableError: TAPTRv3 as TorchScript.
     """
     exporters = {"onnx": export_onnx, "torchscript": export_torchscript}
     if format not in exporters:
         raise ValueError(f"unknown export format {format!r}; choose onnx or torchscript")
+    if isinstance(model, TAPTRv3):
+        if format != "onnx":
+            raise NotExportableError(
+                "TAPTRv3 exports to ONNX (--format onnx), run by taptr.export.OnnxTracker"
+            )
+        from taptr.export.v3_graphs import export_v3
+
+        return export_v3(model, directory, input_size, history_frames)
+    if history_frames is not None:
+        raise ValueError("history_frames applies to TAPTRv3 models only")
     return exporters[format](model, directory, input_size)

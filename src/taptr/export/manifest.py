@@ -90,17 +90,31 @@ class ExportManifest:
 
         Raises:
             FileNotFoundError: no manifest there (not an export folder).
-            ValueError: a manifest of another version.
+            ValueError: a manifest of another version, or of a TAPTRv3 export.
         """
-        path = Path(directory) / MANIFEST_NAME
-        if not path.is_file():
-            raise FileNotFoundError(
-                f"{directory} is not a taptr export folder (no {MANIFEST_NAME})"
+        data = read_manifest(directory)
+        if data.get("version") == 3:
+            raise ValueError(
+                f"{directory} holds a TAPTRv3 export: run it with taptr.export.OnnxTracker "
+                "(or read its manifest with taptr.export.V3Manifest)"
             )
-        data = json.loads(path.read_text())
-        version = data.pop("taptr_export", None)
-        if version != FORMAT_VERSION:
-            raise ValueError(f"{path}: export format {version}, this taptr reads {FORMAT_VERSION}")
         data["input_size"] = tuple(data["input_size"])
         data["spatial_shapes"] = tuple(tuple(s) for s in data["spatial_shapes"])
         return cls(**data)
+
+
+def read_manifest(directory: str | os.PathLike[str]) -> dict[str, Any]:
+    """The manifest of an export folder (any model) as a dict, its format version checked.
+
+    Raises:
+        FileNotFoundError: no manifest there (not an export folder).
+        ValueError: a manifest of another format version.
+    """
+    path = Path(directory) / MANIFEST_NAME
+    if not path.is_file():
+        raise FileNotFoundError(f"{directory} is not a taptr export folder (no {MANIFEST_NAME})")
+    data = json.loads(path.read_text())
+    version = data.pop("taptr_export", None)
+    if version != FORMAT_VERSION:
+        raise ValueError(f"{path}: export format {version}, this taptr reads {FORMAT_VERSION}")
+    return data

@@ -1,9 +1,10 @@
 """Checking exported graphs against the PyTorch model on a clip: parity and speed.
 
-`compare` tracks the same points through the same frames twice with the one
-sliding-window driver (`taptr.model.sliding_window.run_windows`): over the PyTorch model (its
-current attention kernel) and over the exported graphs (`taptr.export.graph_runner`), and reports
-the largest differences and the time each took.
+`compare` tracks the same points through the same frames twice: with the PyTorch model's
+own driver (`taptr.runtime.drivers.run_tracker`, its current attention kernel) and with the
+exported graphs (TAPTR v1 and v2: the same sliding-window driver over the graphs,
+`taptr.export.graph_runner`; TAPTRv3: the torch-free frame loop, `taptr.export.v3_loop`),
+and reports the largest differences and the time each took.
 """
 
 from __future__ import annotations
@@ -19,8 +20,14 @@ import torch
 from taptr.data.sample_video import make_sample_clip
 from taptr.export.backends import load_steps
 from taptr.export.graph_runner import TrackArrays, track_points
-from taptr.model.sliding_window import QuerySet, run_windows
+from taptr.export.manifest import ExportManifest
+from taptr.export.v3_loop import track_points as track_frames
+from taptr.export.v3_manifest import V3Manifest
+from taptr.export.v3_sessions import OnnxGraphs
+from taptr.model.sliding_window import QuerySet
 from taptr.model.taptr import TAPTR, normalize_frames
+from taptr.model.v3.taptr import TAPTRv3
+from taptr.runtime.drivers import run_tracker
 from taptr.runtime.frames import EncodedFrames
 
 
@@ -57,9 +64,16 @@ def sample_frames(num_frames: int, size: tuple[int, int], seed: int) -> np.ndarr
 
 
 def torch_tracks(
-    model: TAPTR, frames: np.ndarray, starts: np.ndarray, positions: np.ndarray
+    model: TAPTR,
+    frames: np.ndarray,
+    starts: np.ndarray,
+    positions: np.ndarray,
+    history_frames: int | None = None,
 ) -> TrackArrays:
-    """The model's own driver on float32 frames (T, 3, H, W); outputs as `track_points`."""
+    """The model's own driver on float32 frames (T, 3, H, W); outputs as `track_points`.
+
+    ``history_frames``: TAPTRv3's history limit (default: the model's).
+    """
     parameter = next(model.parameters())
     video = normalize_frames(torch.from_numpy(frames)).to(parameter)[None]  # (1, T, 3, H, W)
     queries = QuerySet(
@@ -68,8 +82,13 @@ def torch_tracks(
         torch.ones(1, len(starts), dtype=torch.bool, device=parameter.device),
     )
     with torch.no_grad():
-        output = run_windows(
-            model, queries, len(frames), EncodedFrames(model, video), parameter.dtype
+        output = run_tracker(
+            model,
+            queries,
+            len(frames),
+            EncodedFrames(model, video),
+            parameter.dtype,
+            history_frames=history_frames,
         )
     return TrackArrays(
         output.positions[0].float().cpu().numpy(), output.visibility_logits[0].float().cpu().numpy()
@@ -84,6 +103,33 @@ def _best_time(repeats: int, run: Callable[[], TrackArrays]) -> tuple[float, Tra
         result = run()
         best = min(best, time.perf_counter() - began)
     return best, result
+
+
+ExportedRun = Callable[[np.ndarray, np.ndarray, np.ndarray], TrackArrays]
+"""Frames (T, 3, H, W), start frames (N,) and positions (N, 2) → tracks, through graphs."""
+
+
+def exported_tracker(
+    model: TAPTR, directory: str | os.PathLike[str], threads: int | None
+) -> tuple[ExportManifest | V3Manifest, int | None, ExportedRun]:
+    """An export's manifest, its history limit (TAPTRv3) and how it tracks a clip.
+
+    TAPTR v1 and v2 run through their window driver over the graphs; TAPTRv3 through the
+    torch-free frame loop.
+    """
+    if isinstance(model, TAPTRv3):
+        graphs = OnnxGraphs(directory, threads=threads)
+
+        def frame_loop(frames: np.ndarray, starts: np.ndarray, xy: np.ndarray) -> TrackArrays:
+            return TrackArrays(*track_frames(graphs, frames, len(frames), starts, xy))
+
+        return graphs.manifest, graphs.manifest.history_frames, frame_loop
+    steps = load_steps(directory, threads=threads)
+
+    def window_loop(frames: np.ndarray, starts: np.ndarray, xy: np.ndarray) -> TrackArrays:
+        return track_points(steps, steps.manifest, frames, len(frames), starts, xy)
+
+    return steps.manifest, None, window_loop
 
 
 def compare(
@@ -107,15 +153,14 @@ def compare(
         repeats: runs of each side; the best time is reported.
         threads: CPU threads for onnxruntime (PyTorch uses its current setting).
     """
-    steps = load_steps(directory, threads=threads)
-    manifest = steps.manifest
+    manifest, history, run_exported = exported_tracker(model, directory, threads)
     frames = sample_frames(num_frames, manifest.input_size, seed)
     starts, positions = sample_queries(num_frames, num_points, seed)
     torch_seconds, expected = _best_time(
-        repeats, lambda: torch_tracks(model.eval(), frames, starts, positions)
+        repeats, lambda: torch_tracks(model.eval(), frames, starts, positions, history)
     )
     exported_seconds, exported = _best_time(
-        repeats, lambda: track_points(steps, manifest, frames, num_frames, starts, positions)
+        repeats, lambda: run_exported(frames, starts, positions)
     )
     error = np.abs(exported.positions - expected.positions)  # (T, N, 2)
     pixels = error * (np.array(manifest.input_size[::-1], np.float32) - 1)

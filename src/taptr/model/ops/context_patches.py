@@ -305,8 +305,11 @@ def _patch_products(sampled: Tensor, own: Tensor, locations: int) -> Tensor:
 
 
 def query_chunks(queries: int, per_query: int, block: int | None = CHUNK_ELEMENTS) -> list[slice]:
-    """Slices of queries whose patch samples stay under ``block`` elements each (None: one)."""
-    if block is None:
+    """Slices of queries whose patch samples stay under ``block`` elements each (None: one).
+
+    An exported graph takes one slice: its query count is dynamic.
+    """
+    if block is None or torch.compiler.is_exporting():
         return [slice(0, queries)]
     step = max(1, block // max(1, per_query))
     return [slice(start, start + step) for start in range(0, queries, step)]

@@ -75,9 +75,11 @@ def history_attention(
     chunk = max(1, CHUNK_ELEMENTS // max(1, frames * channels))
     if torch.compiler.is_compiling():
         chunk = COMPILED_CHUNK_QUERIES
+    # an exported graph's point count is dynamic: one chunk
+    exporting = torch.compiler.is_exporting()
+    parts = [slice(None)] if exporting else [slice(s, s + chunk) for s in range(0, queries, chunk)]
     mixed = []
-    for start in range(0, queries, chunk):
-        part = slice(start, start + chunk)
+    for part in parts:
         keys = keys_of(history[part])  # (q, H, C)
         scores = torch.einsum("qmc,qhc->qmh", key_images[part], keys)
         scores = scores + key_bias[part, :, None]  # (q, M, H)

@@ -297,12 +297,46 @@ def held_frames(model: TAPTRv3, state: FrameState, frame: int) -> HeldFrames:
         weights = frame_weights(frames, starts, history.visibility_logits, model.visibility_weights)
         return HeldFrames(history.content, frame - frames, weights)
     frames = history.slot_frames()  # (capacity,)
-    weights = frame_weights(
-        frames, starts, history.slot_visibility_logits, model.visibility_weights
-    )
     outside = (frames < history.first) | (frames > frame)  # (capacity,)
+    return buffer_held(
+        model,
+        frames,
+        outside,
+        frame,
+        starts,
+        history.slot_content,
+        history.slot_visibility_logits,
+    )
+
+
+def buffer_held(
+    model: TAPTRv3,
+    slot_frames: Tensor,
+    outside: Tensor,
+    frame: int | Tensor,
+    start_frames: Tensor,
+    slot_content: Tensor,
+    slot_visibility_logits: Tensor,
+) -> HeldFrames:
+    """What the long-temporal attention reads from a whole history buffer on ``frame``.
+
+    Shared by the static step and the exported one (`taptr.export.v3_modules`), whose
+    buffer is an input.
+
+    Args:
+        model: the network (whether it weighs frames by visibility).
+        slot_frames: (capacity,) int64 frame each buffer slot holds or would hold.
+        outside: (capacity,) bool, slots that hold no frame read on ``frame``.
+        frame: the frame being decoded (an int, or a 0-d int64 tensor in a graph).
+        start_frames: (B, N) each point's start frame.
+        slot_content: (B, N, capacity, C) the buffer's content.
+        slot_visibility_logits: (B, N, capacity) float32 last-layer logits of the slots.
+    """
+    weights = frame_weights(
+        slot_frames, start_frames, slot_visibility_logits, model.visibility_weights
+    )
     weights = weights & ~outside if weights.dtype == torch.bool else weights.masked_fill(outside, 0)
-    return HeldFrames(history.slot_content, frame - frames, weights, outside)
+    return HeldFrames(slot_content, frame - slot_frames, weights, outside)
 
 
 def _carried(model: TAPTRv3, state: FrameState, frame: int, unwritten: Tensor) -> FrameOutput:
