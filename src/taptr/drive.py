@@ -11,8 +11,9 @@ renames it into place: a partial or wrong download never looks complete. The che
 the caller's (`fetch`'s ``check``): `taptr.hub` refuses web pages, files smaller than the
 weights they should hold and another model's weights.
 
-The transfer is bounded (`taptr.transfer`): Drive's name must resolve and Drive answer
-within ``TAPTR_DOWNLOAD_TIMEOUT`` seconds (default `PROBE_TIMEOUT`), the download keep up
+The transfer is bounded (`taptr.transfer`): Drive's name must resolve and a connection
+open within seconds (`taptr.transfer.reach_seconds`), Drive answer within
+``TAPTR_DOWNLOAD_TIMEOUT`` seconds (default `PROBE_TIMEOUT`), the download keep up
 ``TAPTR_DOWNLOAD_MIN_RATE`` after that, and its declared or streamed size stay within what
 the file can be (``largest``); one that does not is stopped with one line saying why.
 
@@ -167,7 +168,7 @@ def _answer(first: str, seconds: float) -> str:
     from gdown.exceptions import FileURLRetrievalError
 
     try:
-        transfer.reach(first, seconds)
+        transfer.reach(first, transfer.reach_seconds())
         return transfer.within(
             seconds,
             lambda: _file_address(first, get_url_from_gdrive_confirmation, seconds),

@@ -3,9 +3,10 @@
 `weights_path` reads a published file from the local Hub cache, without a request, and
 otherwise (not offline) asks the Hub once and downloads it through ``huggingface_hub``
 after a one-line notice of its licence. The transfer is bounded (`taptr.transfer`): the
-Hub's name must resolve and the Hub answer within ``TAPTR_DOWNLOAD_TIMEOUT`` seconds
-(default `PROBE_TIMEOUT`), so that an offline machine falls back in seconds; the download
-must keep up ``TAPTR_DOWNLOAD_MIN_RATE``; a declared or streamed size above what a
+Hub's name must resolve and a connection open within 2 s
+(`taptr.transfer.reach_seconds`), so that an offline machine falls back at once, and the
+Hub answer within ``TAPTR_DOWNLOAD_TIMEOUT`` seconds (default `PROBE_TIMEOUT`); the
+download must keep up ``TAPTR_DOWNLOAD_MIN_RATE``; a declared or streamed size above what a
 release of the weights holds (`taptr.drive_weights.release_bytes`) is refused before the
 rest is written. A cached file that cannot be the weights (a web page, a size no release
 has) is moved aside with one line and fetched again; one whose SHA-256 is not the
@@ -210,7 +211,7 @@ def _probe(url: str, endpoint: str | None, seconds: float) -> Any:
     """The file's metadata, once the Hub's name resolved and the Hub answered in time."""
     from huggingface_hub import get_hf_file_metadata
 
-    transfer.reach(url, seconds)
+    transfer.reach(url, transfer.reach_seconds())
     # a single request: hf_hub_download alone retries for ~25 s
     return transfer.within(
         seconds,

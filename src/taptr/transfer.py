@@ -7,8 +7,9 @@ read timeout, a name that the resolver cannot answer waits on the resolver's own
 Around them taptr bounds:
 
 - **the first answer**: the server's name must resolve and a connection open within
-  ``TAPTR_DOWNLOAD_TIMEOUT`` seconds (`reach`), and the caller bounds its first request
-  the same way (`within`);
+  `REACH_SECONDS` (`reach`: an offline machine learns it in two seconds, and the default
+  model falls back as soon), and the caller bounds its first request by
+  ``TAPTR_DOWNLOAD_TIMEOUT`` seconds (`within`), which, when set, bounds both;
 - **the rate**: after that many seconds, the bytes received must keep up with
   ``TAPTR_DOWNLOAD_MIN_RATE`` bytes a second on average (`Watch`), counting the bytes a
   library holds before it reports them (`Watch.slack`);
@@ -44,6 +45,11 @@ RATE_VARIABLE = "TAPTR_DOWNLOAD_MIN_RATE"
 DEFAULT_MIN_RATE = 32 * 1024
 """32 KiB/s: the paper's weights (160 MB) in 83 minutes at worst."""
 
+REACH_SECONDS = 2.0
+"""Seconds for a server's name to resolve and a connection to open, unless
+``TAPTR_DOWNLOAD_TIMEOUT`` says otherwise: a working network takes a fraction of a second,
+and a resolver with no network behind it waits 5 s a try, several tries."""
+
 POLL_SECONDS = 0.05
 """How often a watched transfer is looked at."""
 
@@ -75,6 +81,17 @@ def answer_seconds(default: float) -> float:
             f"{TIMEOUT_VARIABLE}={text[:40]!r} is not a number of seconds: write e.g. 10"
         )
     return seconds
+
+
+def reach_seconds() -> float:
+    """Seconds for a name to resolve and a connection to open.
+
+    ``TAPTR_DOWNLOAD_TIMEOUT`` when it is set, else `REACH_SECONDS`.
+
+    Raises:
+        ValueError: the variable is not a positive number of seconds.
+    """
+    return answer_seconds(REACH_SECONDS)
 
 
 def least_rate() -> float:
