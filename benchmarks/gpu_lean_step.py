@@ -12,7 +12,10 @@ For a session that is lent a GPU (one run, well under 8 minutes on an H100):
 - TAPTRv3 through ``Predictor.track`` with its step captured (``capture="on"``, what
   ``auto`` picks where the kept measurement says so) and not (``"off"``), float32 and
   bfloat16 autocast, frames/s;
-- the online tracker's latency per frame (TAPTRv3, 800 points), captured and not.
+- the online tracker's latency per frame (TAPTRv3, 800 points), captured and not;
+- TAPTRv3 exported to ONNX (issue 44, `onnx_gpu_cases`): onnxruntime's CUDA provider,
+  plain and replayed as CUDA graphs, and its TensorRT provider, float32 and float16,
+  encoder and per-frame step with their inputs and outputs bound on the GPU.
 
 Each case runs once untimed first (kernel selection, compilation, graph capture). Weights
 are random: the outputs' agreement is checked on frame 1 only (later frames of a random
@@ -21,6 +24,8 @@ model are chaotic, docs/BENCHMARKS.md). Prints one JSON object.
     python benchmarks/gpu_lean_step.py --device cuda
     python benchmarks/gpu_lean_step.py --device cpu --preset tiny-v3 --size 64 64 --points 16 \
         --frames 6 --v2-preset tiny --v2-size 64 64 --v2-points 16 --backend eager
+    python benchmarks/gpu_lean_step.py --device cpu --preset tiny-v3 --size 64 64 --points 16 \
+        --frames 6 --cases onnx_taptrv3  # the ONNX cases alone (the CPU provider without a GPU)
 """
 
 from __future__ import annotations
@@ -188,6 +193,27 @@ def v2_predictor(args: argparse.Namespace, device: torch.device) -> dict[str, fl
     return results
 
 
+def onnx_taptrv3(args: argparse.Namespace, device: torch.device) -> dict[str, object]:
+    """TAPTRv3's exported graphs through onnxruntime's GPU providers (`onnx_gpu_cases`)."""
+    from onnx_gpu_cases import onnx_cases  # beside this script: imported when run
+
+    from taptr.config import get_config
+
+    torch.manual_seed(0)
+    model = build_model(get_config(args.preset).replace(input_size=tuple(args.size))).eval()
+    return onnx_cases(model, args.points, runs=max(3, args.frames // 2), float32=args.onnx_export)
+
+
+CASES = {
+    "taptrv3": v3_cases,
+    "taptrv3_predictor": v3_predictor,
+    "online_taptrv3": online_latency,
+    "taptrv2_predictor": v2_predictor,
+    "onnx_taptrv3": onnx_taptrv3,
+}
+"""Each case of the report, by its key; ``--cases`` picks some."""
+
+
 def main(argv: list[str] | None = None) -> int:
     """Runs every case and prints one JSON object."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -202,16 +228,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--backend", default="inductor", help="torch.compile backend (eager: a quick CPU check)"
     )
+    parser.add_argument(
+        "--cases", nargs="+", default=list(CASES), help="cases to run (default: all)"
+    )
+    parser.add_argument("--onnx-export", default=None, help="a float32 TAPTRv3 export of --preset")
     args = parser.parse_args(argv)
+    unknown = sorted(set(args.cases) - set(CASES))
+    if unknown:
+        parser.error(f"unknown cases {unknown}; choose from {', '.join(CASES)}")
     device = torch.device(args.device)
     step_capture.BACKEND = args.backend
     report = {
         "machine": machine(),
         "command": " ".join(["python", "benchmarks/gpu_lean_step.py", *(argv or sys.argv[1:])]),
-        "taptrv3": v3_cases(args, device),
-        "taptrv3_predictor": v3_predictor(args, device),
-        "online_taptrv3": online_latency(args, device),
-        "taptrv2_predictor": v2_predictor(args, device),
+        **{name: run(args, device) for name, run in CASES.items() if name in args.cases},
     }
     print(json.dumps(report, indent=1))
     return 0

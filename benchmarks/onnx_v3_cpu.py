@@ -134,14 +134,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--points", type=int, nargs="+", default=[100, 800])
     parser.add_argument("--threads", type=int, default=torch.get_num_threads())
     parser.add_argument("--turns", type=int, default=2)
+    parser.add_argument("--checkpoint", default=None, help="a TAPTRv3 checkpoint instead")
     parser.add_argument("--export", default=None, help="an export folder of the same model")
     parser.add_argument("--skip-capture", action="store_true", help="no captured step")
     parser.add_argument("--backend", default="inductor", help="the capture's compile backend")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     step_capture.BACKEND = args.backend
-    torch.manual_seed(0)
-    model = build_model(build_config(args)).eval()
+    model = load_model(args)
     folder = args.export or tempfile.mkdtemp(prefix="taptr-onnx-v3-")
     began = time.perf_counter()
     if args.export is None:
@@ -171,11 +171,15 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def build_config(args: argparse.Namespace):
-    """The preset at the benchmark's input size."""
+def load_model(args: argparse.Namespace) -> torch.nn.Module:
+    """``--checkpoint``, or the preset at the benchmark's input size, seeded."""
+    from taptr.checkpoint import load_checkpoint
     from taptr.config import get_config
 
-    return get_config(args.preset).replace(input_size=tuple(args.size))
+    if args.checkpoint is not None:
+        return load_checkpoint(args.checkpoint).eval()
+    torch.manual_seed(0)
+    return build_model(get_config(args.preset).replace(input_size=tuple(args.size))).eval()
 
 
 if __name__ == "__main__":

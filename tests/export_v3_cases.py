@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
 from collections.abc import Callable
 from pathlib import Path
@@ -11,6 +13,8 @@ import torch
 from filelock import FileLock
 
 import taptr
+from taptr.checkpoint import save_checkpoint
+from taptr.cli.main import main
 from taptr.export.v3_graphs import prepare_v3, v3_manifest, v3_wrappers
 from taptr.model.v3.taptr import TAPTRv3
 
@@ -60,18 +64,13 @@ class EagerGraphs:
         return tuple(self._run("decode_step", *(inputs[name] for name in names)))
 
 
-def exported_once(
-    tmp_path_factory, worker_id: str, name: str, export: Callable[[Path], object]
-) -> Path:
+def exported_once(base_temp: Path, name: str, export: Callable[[Path], object]) -> Path:
     """A folder ``export`` wrote once per test run, shared by pytest-xdist's workers.
 
-    The first worker to ask exports under a lock; the others wait and read its folder.
+    ``base_temp``: pytest's base temporary folder (its workers' have a common parent).
+    The first test to ask exports under a lock; the others wait and read its folder.
     """
-    if worker_id == "master":
-        folder = tmp_path_factory.mktemp(name)
-        export(folder)
-        return folder
-    root = tmp_path_factory.getbasetemp().parent
+    root = base_temp.parent if os.environ.get("PYTEST_XDIST_WORKER") else base_temp
     folder = root / name
     with FileLock(str(folder) + ".lock"):
         done = folder / "done"
@@ -79,3 +78,28 @@ def exported_once(
             export(folder)
             done.write_text(str(os.getpid()))
     return folder
+
+
+HISTORY = 6
+"""The shared tiny export's history limit (``--history-frames``): 100 frames run its FIFO."""
+
+
+def tiny_export(base_temp: Path) -> Path:
+    """The tiny TAPTRv3 (`randomised_v3`) exported once per run by ``taptr export --check``.
+
+    The folder holds ``graphs/`` (the export), ``tiny_v3.pth`` (the model) and
+    ``printed.txt`` (what the command printed).
+    """
+
+    def export(folder: Path) -> None:
+        folder.mkdir(parents=True, exist_ok=True)
+        checkpoint = save_checkpoint(randomised_v3(), folder / "tiny_v3.pth")
+        printed = io.StringIO()
+        command = ["export", "--format", "onnx", "--out", str(folder / "graphs")]
+        command += ["--checkpoint", str(checkpoint), "--history-frames", str(HISTORY)]
+        command += ["--check", "--check-frames", "9", "--check-points", "5", "--threads", "1"]
+        with contextlib.redirect_stdout(printed):
+            assert main(command) == 0
+        (folder / "printed.txt").write_text(printed.getvalue())
+
+    return exported_once(base_temp, "tiny_v3_onnx", export)

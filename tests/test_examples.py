@@ -61,6 +61,16 @@ def _online_camera(tmp_path, sample, capsys):
     assert read_video(out).shape == (20, 256, 256, 3)  # every frame came back, in order
 
 
+def _online_camera_onnx(tmp_path, sample, capsys):
+    from tests.export_v3_cases import tiny_export
+
+    graphs = tiny_export(tmp_path.parent) / "graphs"  # shared with tests/test_export_v3_onnx.py
+    out = tmp_path / "online_onnx.mp4"
+    argv = ["--export", str(graphs), "--video", str(sample), "--max-frames", "12", "--grid", "3"]
+    assert _load("online_camera_onnx").main([*argv, "--refresh", "6", "--out", str(out)]) == 0
+    assert read_video(out).shape == (12, 256, 256, 3)
+
+
 def _edit_region(tmp_path, sample, capsys):
     out = tmp_path / "edited.mp4"
     argv = ["--max-frames", "10", "--stride", "12", "--checkpoint", "tiny", "--out", str(out)]
@@ -119,6 +129,7 @@ def _calibrate_threshold(tmp_path, sample, capsys):
 RUNS = {
     "track_video": _track_video,
     "online_camera": _online_camera,
+    "online_camera_onnx": _online_camera_onnx,
     "edit_region": _edit_region,
     "sample_video": _sample_video,
     "evaluate": _evaluate,

@@ -63,7 +63,7 @@ def test_loop_matches_the_driver(model, num_frames, starts, history):
     positions = np.random.default_rng(1).uniform(0.05, 0.95, (len(starts), 2)).astype(np.float32)
     expected = _driver(model, frames, starts, positions, history=history)
     got = track_points(EagerGraphs(model), frames, num_frames, starts, positions, None, history)
-    np.testing.assert_allclose(got.positions, expected[0], atol=1e-5, rtol=0)
+    np.testing.assert_allclose(got.positions, expected[0], atol=3e-5, rtol=0)
     np.testing.assert_allclose(got.visibility_logits, expected[1], atol=1e-4, rtol=0)
 
 
@@ -84,7 +84,7 @@ def test_loop_matches_the_driver_for_ablations(changes):
     graphs = EagerGraphs(model)
     assert (graphs.manifest.context_patch == 0) == ("context_attention" in changes)
     got = track_points(graphs, frames, 10, starts, positions, visible.numpy())
-    np.testing.assert_allclose(got.positions, expected[0], atol=1e-5, rtol=0)
+    np.testing.assert_allclose(got.positions, expected[0], atol=3e-5, rtol=0)
     np.testing.assert_allclose(got.visibility_logits, expected[1], atol=1e-4, rtol=0)
 
 

@@ -9,8 +9,6 @@ and the runner in a process where torch cannot be imported.
 
 from __future__ import annotations
 
-import contextlib
-import io
 import json
 import subprocess
 import sys
@@ -20,20 +18,16 @@ import pytest
 
 from taptr.api.online import OnlineTracker
 from taptr.api.predictor import Predictor
-from taptr.checkpoint import save_checkpoint
-from taptr.cli.main import main
 from taptr.export.v3_manifest import GRAPHS, V3Manifest
 from taptr.export.v3_online import OnnxOnlineTracker
 from taptr.export.v3_sessions import OnnxGraphs
 from taptr.export.v3_tracker import OnnxTracker
-from tests.export_v3_cases import EagerGraphs, exported_once, randomised_v3
+from taptr.model.v3.context_attention import ContextAwareDeformableAttention
+from tests.export_v3_cases import HISTORY, EagerGraphs, randomised_v3, tiny_export
 from tests.test_export_v3_loop import _stream_run
 
 pytest.importorskip("onnxruntime")
 pytest.importorskip("onnxscript")
-
-HISTORY = 6
-"""The export's history limit (``--history-frames``): a 100-frame stream runs its FIFO."""
 
 
 @pytest.fixture(scope="module")
@@ -42,24 +36,12 @@ def model():
 
 
 @pytest.fixture(scope="module")
-def exported(model, tmp_path_factory, worker_id):
-    """The export folder; ``printed.txt`` beside the graphs holds what the command printed."""
-
-    def export(folder):
-        folder.mkdir(parents=True, exist_ok=True)
-        checkpoint = save_checkpoint(model, folder / "tiny_v3.pth")
-        printed = io.StringIO()
-        command = ["export", "--format", "onnx", "--out", str(folder / "graphs")]
-        command += ["--checkpoint", str(checkpoint), "--history-frames", str(HISTORY)]
-        command += ["--check", "--check-frames", "9", "--check-points", "5", "--threads", "1"]
-        with contextlib.redirect_stdout(printed):
-            assert main(command) == 0
-        (folder / "printed.txt").write_text(printed.getvalue())
-
-    return exported_once(tmp_path_factory, worker_id, "tiny_v3_onnx", export)
+def exported(tmp_path_factory):
+    """The shared export folder (`tests.export_v3_cases.tiny_export`)."""
+    return tiny_export(tmp_path_factory.getbasetemp())
 
 
-def test_command_writes_the_graphs_and_checks_them(model, exported):
+def test_command_writes_the_graphs_and_checks_them(exported):
     printed = (exported / "printed.txt").read_text()
     manifest = V3Manifest.load(exported / "graphs")
     assert all(manifest.graph_path(exported / "graphs", name).is_file() for name in GRAPHS)
@@ -71,13 +53,15 @@ def test_command_writes_the_graphs_and_checks_them(model, exported):
     assert "64×48 frames" in printed and "check on the 9-frame sample clip" in printed
     assert float(printed.split("max |Δ| positions ")[1].split()[0]) <= 1e-4
     assert float(printed.split("visibility logits ")[1].split(";")[0]) <= 1e-4
-    assert model.execution.name == "fast"  # the model is untouched
 
 
 def test_graphs_hold_at_other_sizes(model, exported):
     """Graph by graph against the eager wrappers, with sizes the tracing never saw."""
     onnx = OnnxGraphs(exported / "graphs", threads=1)
     eager = EagerGraphs(model)
+    attention = model.decoder.layers[0].cross_attention
+    assert type(attention) is ContextAwareDeformableAttention  # the export works on a copy
+    assert model.execution.name == "fast"
     rng = np.random.default_rng(0)
     frames = rng.random((3, 3, 48, 64), dtype=np.float32)
     memory = eager.encode(frames)
