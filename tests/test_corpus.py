@@ -11,6 +11,7 @@ tests/test_corpus_cluster.py.
 
 from __future__ import annotations
 
+import builtins
 import contextlib
 import io
 import json
@@ -101,8 +102,10 @@ def test_a_corpus_survives_killed_actors_records_every_failure_and_resumes(
 ):
     out = tmp_path / "out"
     monkeypatch.setenv("TAPTR_CORPUS_KILL", "v07:1")
+    own_print = builtins.print
     status, printed = _track_corpus(corpus, tiny_checkpoint, out, "--max-video-frames", "25")
     assert status == 2, printed
+    assert builtins.print is own_print  # Ray swaps it when it reports a worker's death
     # v07's actor died in its first attempt: done in its second
     assert re.search(r"23 videos: 20 done \(\d+ after their worker died\), 0 skipped", printed)
     assert "3 failed in" in printed

@@ -5,7 +5,7 @@ settings always describe the files beside it. When ``taptr track`` over several 
 meets a folder that holds a finished run, it skips that video only if the recorded
 settings are the ones asked for now; a folder made with other settings (another model,
 other queries, ``--backward``, ...) or by a taptr too old to record them is tracked again.
-``--overwrite`` tracks every video again. What is recorded: `taptr.api.settings_record`.
+``--overwrite`` tracks every video again. What is recorded: `taptr.settings_record`.
 """
 
 from __future__ import annotations
@@ -17,8 +17,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from taptr.api.settings_record import query_record, settings_record
 from taptr.io.file_kind import is_regular_file
+from taptr.settings_record import query_record, settings_record
 
 if TYPE_CHECKING:
     from taptr.api.predictor import Predictor

@@ -8,6 +8,7 @@ would not fit in their nodes' memory. Each is a one-line error with the numbers.
 
 from __future__ import annotations
 
+import builtins
 import contextlib
 import logging
 import math
@@ -93,13 +94,15 @@ def joined(ray: ModuleType, address: str | None) -> Iterator[None]:
 
     A local instance started here is stopped at the end, Ctrl-C and SIGTERM included,
     so that no Ray process of the job outlives it. The process's own SIGINT and SIGTERM
-    handlers are kept (Ray's would end the process with a native stack).
+    handlers are kept (Ray's would end the process with a native stack), and its
+    ``print``: Ray swaps in its own when it prints a worker's death, and leaves it.
 
     Raises:
         ValueError: the cluster refuses the connection (one line).
     """
     check_address(address)
     handlers = {number: signal.getsignal(number) for number in (signal.SIGINT, signal.SIGTERM)}
+    own_print = builtins.print
     started_here = not ray.is_initialized()
     if started_here:
         try:
@@ -121,6 +124,7 @@ def joined(ray: ModuleType, address: str | None) -> Iterator[None]:
         if started_here:
             ray.shutdown()
         _restore(handlers)
+        builtins.print = own_print
 
 
 def actor_memory(predictor: Predictor) -> int:

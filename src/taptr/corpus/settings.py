@@ -1,6 +1,6 @@
 """A corpus video's settings digest: what a rerun compares to skip it.
 
-The digest hashes `taptr.api.settings_record` (the record ``taptr track`` keeps in
+The digest hashes `taptr.settings_record` (the record ``taptr track`` keeps in
 ``settings.json``) with the video's own queries, so that a video tracked by either command
 with the same model, queries and options counts as the same result.
 """
@@ -12,8 +12,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from taptr.api.settings_record import query_record, record_digest, settings_record
 from taptr.corpus.inputs import CorpusVideo, QuerySpec
+from taptr.settings_record import query_record, record_digest, settings_record
 
 if TYPE_CHECKING:
     from taptr.api.predictor import Predictor
