@@ -228,3 +228,30 @@ def test_stream_errors(model):
     onnx.step(state, frames)  # frames 0 and 1 decoded
     with pytest.raises(ValueError, match="after frame 1"):
         onnx.add_queries(state, [[1, 2, 2]])
+
+
+def test_command_refuses_torchscript_and_a_history_of_one(model, tmp_path, capsys):
+    from taptr.checkpoint import save_checkpoint
+    from taptr.cli.main import main
+
+    checkpoint = str(save_checkpoint(model, tmp_path / "v3.pth"))
+    base = ["export", "--checkpoint", checkpoint, "--out", str(tmp_path / "out")]
+    assert main([*base, "--format", "torchscript"]) == 2
+    assert "TAPTRv3 exports to ONNX (--format onnx)" in capsys.readouterr().err
+    assert main([*base, "--format", "onnx", "--history-frames", "1"]) == 2
+    assert "--history-frames must be 0" in capsys.readouterr().err
+    assert not (tmp_path / "out" / "decode_step.onnx").exists()
+
+
+def test_manifest_round_trip_and_the_other_model_refused(model, tmp_path):
+    from taptr.export.manifest import ExportManifest
+    from taptr.export.v3_manifest import V3Manifest
+
+    manifest = EagerGraphs(model, history_frames=16).manifest
+    manifest.save(tmp_path)
+    assert V3Manifest.load(tmp_path) == manifest
+    assert manifest.history_frames == 16 and manifest.support.scheme == "grid"
+    with pytest.raises(ValueError, match="TAPTRv3 export"):
+        ExportManifest.load(tmp_path)
+    with pytest.raises(FileNotFoundError, match="not a taptr export folder"):
+        V3Manifest.load(tmp_path / "missing")
