@@ -129,10 +129,15 @@ def seconds_per_run(session: ort.InferenceSession, binding: Any, runs: int) -> f
     return best
 
 
-def one_variant(folder: str, kind: str, half: bool, points: int, runs: int) -> dict:
-    """Encoder and decode_step of one variant: seconds and frames per second."""
+def one_variant(
+    folder: str, kind: str, half: bool, points: int, runs: int, cache: Path
+) -> dict[str, float]:
+    """Encoder and decode_step of one variant: seconds and frames per second.
+
+    ``cache``: where TensorRT keeps the engines it builds.
+    """
     manifest = V3Manifest.load(folder)
-    chosen = providers(kind, half, tempfile.mkdtemp(prefix="taptr-trt-"))
+    chosen = providers(kind, half, str(cache))
     options = session_options(None)
     sessions = {
         name: ort.InferenceSession(
@@ -169,7 +174,14 @@ def onnx_cases(
 
     ``float32``: an export folder of ``model`` to use (default: exported here).
     """
-    root = Path(tempfile.mkdtemp(prefix="taptr-onnx-gpu-"))
+    with tempfile.TemporaryDirectory(prefix="taptr-onnx-gpu-") as scratch:
+        return _all_variants(model, points, runs, Path(scratch), float32)
+
+
+def _all_variants(
+    model: torch.nn.Module, points: int, runs: int, root: Path, float32: str | None
+) -> dict[str, Any]:
+    """`onnx_cases` with a scratch folder ``root`` for the exports."""
     available = ort.get_available_providers()
     if float32 is None:
         export_v3(model, root / "float32")
@@ -184,7 +196,9 @@ def onnx_cases(
             continue
         try:
             half = dtype == "float16"
-            results[f"{kind}_{dtype}"] = one_variant(str(folders[dtype]), kind, half, points, runs)
+            results[f"{kind}_{dtype}"] = one_variant(
+                str(folders[dtype]), kind, half, points, runs, root / "tensorrt-engines"
+            )
         except Exception as error:  # a failing variant is reported, not fatal
             results[f"{kind}_{dtype}"] = f"failed: {type(error).__name__}: {str(error)[:300]}"
     return results

@@ -142,23 +142,13 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     step_capture.BACKEND = args.backend
     model = load_model(args)
-    folder = args.export or tempfile.mkdtemp(prefix="taptr-onnx-v3-")
-    began = time.perf_counter()
-    if args.export is None:
-        export_v3(model, folder)
-    exported = time.perf_counter() - began
-    graphs = OnnxGraphs(folder, threads=args.threads)
-    tracker = OnnxTracker(graphs=graphs)
-    predictor = Predictor(model, device="cpu", capture="off")
-    rng = np.random.default_rng(0)
-    video = rng.integers(0, 256, (args.frames, *args.size, 3), np.uint8)
-    frames = torch.from_numpy(video).permute(0, 3, 1, 2).float() / 255
-    with torch.no_grad():
-        memory = model.encode(normalize_frames(frames)[None])
-    results = {
-        str(points): one_count(args, model, graphs, tracker, predictor, memory, video, points)
-        for points in args.points
-    }
+    with tempfile.TemporaryDirectory(prefix="taptr-onnx-v3-") as scratch:
+        began = time.perf_counter()
+        if args.export is None:
+            export_v3(model, scratch)
+        exported = time.perf_counter() - began
+        folder = args.export or scratch
+        results = run_cases(args, model, folder)
     report = {
         "machine": machine(),
         "onnxruntime": __import__("onnxruntime").__version__,
@@ -169,6 +159,21 @@ def main(argv: list[str] | None = None) -> int:
     }
     print(json.dumps(report, indent=1))
     return 0
+
+
+def run_cases(args: argparse.Namespace, model: torch.nn.Module, folder: str) -> dict:
+    """Every point count's cases over the export in ``folder``."""
+    graphs = OnnxGraphs(folder, threads=args.threads)
+    tracker = OnnxTracker(graphs=graphs)
+    predictor = Predictor(model, device="cpu", capture="off")
+    video = np.random.default_rng(0).integers(0, 256, (args.frames, *args.size, 3), np.uint8)
+    frames = torch.from_numpy(video).permute(0, 3, 1, 2).float() / 255
+    with torch.no_grad():
+        memory = model.encode(normalize_frames(frames)[None])
+    return {
+        str(points): one_count(args, model, graphs, tracker, predictor, memory, video, points)
+        for points in args.points
+    }
 
 
 def load_model(args: argparse.Namespace) -> torch.nn.Module:
