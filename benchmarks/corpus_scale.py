@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import resource
 import subprocess
 import sys
@@ -35,6 +34,7 @@ from typing import ClassVar
 
 import numpy as np
 
+from taptr.apps.benchmark import machine
 from taptr.corpus.probe import Probed
 from taptr.corpus.records import VideoTask, VideoTracks
 from taptr.corpus.worker import TrackerWorker
@@ -79,7 +79,7 @@ def main() -> None:
         return
     results = {
         "command": "python benchmarks/corpus_scale.py " + " ".join(sys.argv[1:]),
-        "cpu": _cpu_name(),
+        "machine": machine(),
         "stand_in": StandInWorker.__doc__,
         "load_average_before": os.getloadavg(),
         "runs": [],
@@ -177,16 +177,6 @@ def _no_model() -> None:
 
 def _quiet(*_args: object, **_kwargs: object) -> None:
     return None
-
-
-def _cpu_name() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip() + f" ({os.cpu_count()} cores)"
-    except OSError:
-        pass
-    return platform.processor()
 
 
 if __name__ == "__main__":

@@ -170,10 +170,11 @@ def test_orphan_parts_are_removed_and_superseded_rows_compacted(tmp_path):
     )
     assert layout.remove_orphans() == [orphan.name.removesuffix(".parquet")]
     assert compact(layout, "20261209T000000000000Z") == 1  # the first part, rewritten
-    found = standing(layout.read_index())
-    assert found["a"][0].digest == "e" * 16 and found["a"][1] is None
-    assert found["b"][0] is not None and found["b"][1] is not None
-    assert found["f"][0] is not None and found["f"][1] is None
+    rows = standing(layout.read_index()).to_pylist()
+    found = {row["video_id"]: (row["done_digest"], row["failed_digest"]) for row in rows}
+    assert found["a"] == ("e" * 16, None)  # the newer result stands
+    assert None not in found["b"]  # a failure newer than its result stands beside it
+    assert found["f"] == ("d" * 16, None)  # a result newer than its failure replaces it
     tracks = layout.read_tracks()
     counts = {name: tracks["video_id"].to_pylist().count(name) for name in "abcf"}
     assert counts == {"a": 3, "b": 3, "c": 3, "f": 3}  # each video's rows once

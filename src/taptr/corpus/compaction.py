@@ -27,11 +27,12 @@ def kept_entries(index: pa.Table) -> dict[str, set[tuple[str, str]]]:
         index: the index rows (`taptr.corpus.schema.index_schema`).
     """
     kept: dict[str, set[tuple[str, str]]] = defaultdict(set)
-    for video_id, (done, failed) in standing(index).items():
-        if done is not None:
-            kept[done.part].add((video_id, DONE))
-        if failed is not None:
-            kept[failed.part].add((video_id, FAILED))
+    found = standing(index)
+    for status, column in ((DONE, "done_part"), (FAILED, "failed_part")):
+        rows = zip(found["video_id"].to_pylist(), found[column].to_pylist(), strict=True)
+        for video_id, part in rows:
+            if part is not None:
+                kept[part].add((video_id, status))
     return kept
 
 
