@@ -215,11 +215,12 @@ class ResultLayout:
 
         from taptr.corpus.records import DONE
 
+        # one row per part and status (thousands), not one Python object per video
+        sums = index.group_by(["part", "status"]).aggregate([("rows", "sum")])
         expected: dict[tuple[str, str], int] = {}
-        columns = (index[name].to_pylist() for name in ("part", "status", "rows"))
+        columns = (sums[name].to_pylist() for name in ("part", "status", "rows_sum"))
         for part, status, rows in zip(*columns, strict=True):
-            key = (TRACKS if status == DONE else FAILURES, part)
-            expected[key] = expected.get(key, 0) + rows
+            expected[(TRACKS if status == DONE else FAILURES, part)] = rows
         with ThreadPoolExecutor(FOOTER_READERS) as pool:
             sound = dict(zip(expected, pool.map(self._holds, expected.items()), strict=True))
         return sorted({part for (_, part), ok in sound.items() if not ok})

@@ -151,8 +151,9 @@ def plan(
     """The videos to track now; counts the skipped ones (done, or failed before).
 
     A video is done when its standing result in ``index`` (`taptr.corpus.standing`) has
-    its digest, failed before when its standing failure has it. The comparison is an
-    Arrow join: a rerun over 10⁶ done videos builds no Python object per video.
+    its digest, failed before when its standing failure has it. Each video finds its
+    standing row by Arrow's ``index_in``: a rerun over 10⁶ done videos builds no Python
+    object per video.
     """
     done, failed_before = _skipped(videos, index, options)
     summary.skipped += int(done.sum())
@@ -178,26 +179,20 @@ def _skipped(
     nothing = np.zeros(len(videos), bool)
     if options.overwrite or len(index) == 0:
         return nothing, nothing
-    corpus = pa.table(
-        {
-            "position": pa.array(np.arange(len(videos), dtype=np.int64)),
-            "video_id": pa.array([video.video_id for video in videos], pa.string()),
-            "digest": pa.array([video.digest for video in videos], pa.string()),
-        }
-    )
-    joined = corpus.join(standing(index), keys="video_id").sort_by("position")
-    positions = joined["position"].to_numpy()
+    found = standing(index)
+    ids = pa.array([video.video_id for video in videos], pa.string())
+    # (V,) each video's row of `found`, null for a video the index does not hold
+    rows = pc.index_in(ids, value_set=found["video_id"].combine_chunks())
+    digests = pa.array([video.digest for video in videos], pa.string())
 
     def same(column: str) -> np.ndarray:
-        equal = pc.fill_null(pc.equal(joined["digest"], joined[column]), False)
-        return equal.to_numpy(zero_copy_only=False)
+        equal = pc.equal(digests, found[column].take(rows))
+        return pc.fill_null(equal, False).to_numpy(zero_copy_only=False)
 
-    done = nothing.copy()
-    done[positions] = same("done_digest")
-    failed = nothing.copy()
-    if not options.retry_failed:
-        failed[positions] = same("failed_digest") & ~done[positions]
-    return done, failed
+    done = same("done_digest")
+    if options.retry_failed:
+        return done, nothing
+    return done, same("failed_digest") & ~done
 
 
 def check_unique(videos: list[CorpusVideo]) -> None:
