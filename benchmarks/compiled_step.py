@@ -1,12 +1,12 @@
 """TAPTRv3's per-frame decoder, eager against ``torch.compile`` (Inductor), on this machine.
 
 Frames are encoded once beforehand; only the decoding of each frame is timed, in the
-static-shape step (`taptr.model.v3.per_frame.FrameState.static_shapes`) for both; the
+static-shape step (`taptr.model.v3.per_frame.DecoderStep.static_shapes`) for both; the
 compiled one is the step the predictor captures (`taptr.runtime.step_capture`), compiled
 once for every history buffer size. Compilation is timed apart: a
 second run of the same command reads what Inductor keeps on disk and shows what a later
 process pays. ``--dtype bfloat16`` runs both under the predictor's CPU bfloat16
-(`taptr.api.predictor.precision_context`).
+(`taptr.runtime.precision.precision_context`).
 
     python benchmarks/compiled_step.py --size 128 128 --points 800 --frames 12
     python benchmarks/compiled_step.py --size 384 512 --frames 8 --dtype bfloat16
@@ -17,16 +17,17 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from typing import Any
 
 import torch
 
-from taptr.api.predictor import precision_context
 from taptr.apps.benchmark import machine
 from taptr.model.build import build_model
-from taptr.model.sliding_window import QuerySet
 from taptr.model.taptr import normalize_frames
+from taptr.model.trajectory import QuerySet
 from taptr.model.v3.per_frame import run_frames
 from taptr.runtime.frames import PrecomputedFrames
+from taptr.runtime.precision import precision_context
 from taptr.runtime.step_capture import StepCapture
 
 
@@ -38,12 +39,14 @@ def decode(
     ``capture="on"``: the step the predictor replays (`taptr.runtime.step_capture`).
     """
     points = queries.start_frames.shape[1]
-    step = StepCapture(model.decoder, torch.device("cpu"), capture, str, points, frames)
+    # eager: the model's decoder on static shapes; captured: the step, static as it replays
+    static: dict[str, Any] = {"static_shapes": True}
+    if capture == "on":
+        step = StepCapture(model.decoder, torch.device("cpu"), "on", str, points, frames)
+        static = {"step": step}
     start = time.perf_counter()
     with torch.no_grad(), precision_context("cpu", autocast):
-        out = run_frames(
-            model, queries, frames, features, torch.float32, static_shapes=True, step=step
-        )
+        out = run_frames(model, queries, frames, features, torch.float32, **static)
     return (time.perf_counter() - start) / frames, out.positions
 
 

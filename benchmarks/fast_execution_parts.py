@@ -40,8 +40,9 @@ import torch
 
 from taptr.model.build import build_model
 from taptr.model.execution import Execution, get_execution
-from taptr.model.sliding_window import QuerySet, run_windows
+from taptr.model.sliding_window import run_windows
 from taptr.model.taptr import TAPTR, normalize_frames
+from taptr.model.trajectory import QuerySet
 from taptr.runtime.frames import EncodedFrames
 
 PARTS_OFF = {

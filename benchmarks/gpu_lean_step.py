@@ -4,7 +4,7 @@ For a session that is lent a GPU (one run, well under 8 minutes on an H100):
 
 - TAPTRv3 (ResNet-18, 384 × 512, 800 points), float32 and bfloat16 autocast: the decoder
   eager, then compiled with ``mode="reduce-overhead"`` (CUDA graphs of the static step,
-  `taptr.model.v3.per_frame.FrameState.static_shapes`, replayed every frame), frames
+  `taptr.model.v3.per_frame.DecoderStep.static_shapes`, replayed every frame), frames
   encoded beforehand; and whole frames (encoder included) eager;
 - operations and host syncs per frame on the device (`taptr.runtime.op_count`);
 - TAPTRv2 (512 × 512) at 800 and 5,000 points through ``Predictor.track`` (its default
@@ -42,15 +42,16 @@ import numpy as np
 import torch
 
 from taptr.api.online import OnlineTracker
-from taptr.api.predictor import Predictor, precision_context
+from taptr.api.predictor import Predictor
 from taptr.apps.benchmark import machine
 from taptr.model.build import build_model
-from taptr.model.sliding_window import QuerySet
 from taptr.model.taptr import normalize_frames
+from taptr.model.trajectory import QuerySet
 from taptr.model.v3.per_frame import run_frames
 from taptr.runtime import step_capture
 from taptr.runtime.frames import EncodedFrames, PrecomputedFrames
 from taptr.runtime.op_count import count_frame_ops
+from taptr.runtime.precision import precision_context
 
 TYPES = {"float32": None, "bfloat16": torch.bfloat16}
 

@@ -28,7 +28,7 @@ import numpy as np
 import onnxruntime as ort
 import torch
 
-from taptr.export.graphs import ONNX_OPSET, _quiet_exporter
+from taptr.export.exporter import ONNX_OPSET, quiet_exporter
 from taptr.export.v3_graphs import (
     dynamic_shapes,
     example_inputs,
@@ -53,7 +53,7 @@ def export_half(model: torch.nn.Module, folder: Path) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     for name, module in v3_wrappers(half, manifest).items():
         inputs = tuple(x.half() if x.is_floating_point() else x for x in examples[name])
-        with _quiet_exporter():
+        with quiet_exporter():
             torch.onnx.export(
                 module,
                 inputs,

@@ -4,7 +4,7 @@
     python examples/edit_region.py video.mp4 --mask region.png --overlay logo.png
 
 The mask is a PNG of the video's size, white inside the region, drawn on ``--query-frame``.
-Points are sampled on a grid inside it (`taptr.apps.editing.sample_region_queries`), tracked
+Points are sampled on a grid inside it (`taptr.api.regions.sample_region_queries`), tracked
 forwards and backwards in time, and on every frame the region's motion is fitted to the
 visible points (a RANSAC homography, outliers dropped) and the overlay is warped with it;
 it is hidden on frames where too few points are visible (the region is occluded).
@@ -51,7 +51,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Tracks the region and writes the edited video."""
     args = parse_args(argv)
     import taptr
-    from taptr.apps.editing import overlay_region, read_mask, sample_region_queries
+    from taptr.api.regions import read_mask, sample_region_queries
+    from taptr.apps.editing import overlay_region
     from taptr.io.video import read_video, video_info, write_video
 
     if args.video:

@@ -110,7 +110,7 @@ def _config_checkpoint(folder: Path, **config: object) -> Path:
 
 def _cases(folder: Path) -> dict[str, Callable[[], object]]:
     """Every case by name: a call that reads its input."""
-    from taptr.apps.editing import read_mask
+    from taptr.api.regions import read_mask
     from taptr.checkpoint import load_checkpoint
     from taptr.cli.edit import _read_overlay
     from taptr.data.kubric import read_sequence

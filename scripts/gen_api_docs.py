@@ -31,8 +31,11 @@ SECTIONS = {
         "taptr.api.streaming",
         "taptr.api.context",
         "taptr.api.resize",
+        "taptr.api.regions",
         "taptr.types",
         "taptr.apps.editing",
+        "taptr.runtime.runner",
+        "taptr.runtime.precision",
     ],
     "Models and checkpoints": [
         "taptr.hub",

@@ -198,7 +198,7 @@ def _read_role(role: str, root: Path, path: Path, content: bytes) -> list[np.nda
     if role == "video file":
         return list(read_video(path))
     if role == "mask":
-        from taptr.apps.editing import read_mask
+        from taptr.api.regions import read_mask
 
         return [read_mask(path)]
     if role == "overlay":
@@ -439,10 +439,10 @@ def _within(run: Callable[[], Any], fifos: list[Path]) -> None:
 
 def _special_role(root: Path, role: str, stem: str) -> tuple[Path, Callable[[], Any]]:
     """(the path to make special, a call that reads it in ``role``)."""
-    from taptr.apps.editing import read_mask
+    from taptr.api.regions import read_mask
     from taptr.checkpoint import load_checkpoint
+    from taptr.cli.common.points import read_points_file
     from taptr.cli.edit import _read_overlay
-    from taptr.cli.points import read_points_file
     from taptr.data.kubric import read_sequence
     from taptr.data.tapvid import iter_tapvid
     from taptr.io.video import read_video, video_info

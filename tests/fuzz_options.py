@@ -72,7 +72,7 @@ def settings_entries(draw: st.DrawFn) -> tuple[str, bytes]:
 
 def rerun_over_settings(entry: tuple[str, bytes]) -> None:
     """``made_with`` answers; a rerun either refuses up front or leaves one run's files."""
-    from taptr.cli.result_settings import SETTINGS_NAME, made_with
+    from taptr.cli.common.result_settings import SETTINGS_NAME, made_with
     from taptr.io.atomic import result_folder
 
     kind, data = entry

@@ -16,7 +16,7 @@ import pytest
 import torch
 
 from taptr.api.inputs import MAX_POINTS_ENV, grid_queries, max_points, query_tensor
-from taptr.apps.editing import read_mask
+from taptr.api.regions import read_mask
 from taptr.cli.main import build_parser, main
 from taptr.io.tracks import load_tracks_npz
 from taptr.io.video import write_video

@@ -13,8 +13,8 @@ import pytest
 import torch
 
 from taptr.model.build import build_model
-from taptr.model.sliding_window import QuerySet
 from taptr.model.taptr import normalize_frames
+from taptr.model.trajectory import QuerySet
 from taptr.model.v3 import per_frame
 from taptr.runtime.frames import EncodedFrames
 
@@ -60,6 +60,6 @@ def test_a_compiled_decoder_gets_the_static_step():
     queries = QuerySet(
         torch.zeros(1, 2, dtype=torch.long), torch.rand(1, 2, 2), torch.ones(1, 2, dtype=torch.bool)
     )
-    assert per_frame.start_state(model, queries, torch.float32).static_shapes
+    assert per_frame.start_state(model, queries, torch.float32).step.static_shapes
     plain = build_model("tiny-v3").eval()
-    assert not per_frame.start_state(plain, queries, torch.float32).static_shapes
+    assert not per_frame.start_state(plain, queries, torch.float32).step.static_shapes

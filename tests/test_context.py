@@ -11,7 +11,7 @@ from taptr.api.context import ContextPoints, draw_context, padding_bounds, with_
 from taptr.api.online import OnlineTracker
 from taptr.config import ModelConfig, get_config
 from taptr.eval.official_protocol import official_padding
-from taptr.model.sliding_window import QuerySet
+from taptr.model.trajectory import QuerySet
 from taptr.train.config import from_dict as train_config_from_dict
 
 

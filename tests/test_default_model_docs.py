@@ -147,8 +147,8 @@ def test_reader_pages_state_the_fallback_with_the_default(name):
 
 
 def test_help_and_the_fallback_line_name_the_chain():
+    from taptr.cli.common.model_options import CHECKPOINT_HELP
     from taptr.cli.main import build_parser
-    from taptr.cli.model_options import CHECKPOINT_HELP
     from taptr.hub import fallback_notice
 
     for model in (DEFAULT_MODEL, FALLBACK_MODEL):

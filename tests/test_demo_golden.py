@@ -21,8 +21,8 @@ from taptr import Predictor
 from taptr.api.context import draw_context, with_context
 from taptr.api.resize import lanczos_resize
 from taptr.geometry import pixels_to_normalized
-from taptr.model.sliding_window import QuerySet
 from taptr.model.taptr import normalize_frames
+from taptr.model.trajectory import QuerySet
 from tests.helpers import FIXTURES
 
 

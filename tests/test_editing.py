@@ -8,12 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-from taptr.apps.editing import (
-    fit_region_transform,
-    overlay_region,
-    read_mask,
-    sample_region_queries,
-)
+from taptr.api.regions import read_mask, sample_region_queries
+from taptr.apps.editing import fit_region_transform, overlay_region
 from tests.helpers import SHARED_MEDIA
 
 SIZE = 96

@@ -200,7 +200,7 @@ def test_the_predictor_tracks_the_same_at_any_frames_per_call(model, measured_fi
 
 @torch.no_grad()
 def test_a_stream_reads_ahead_through_arrived_frames_only(model, video, monkeypatch):
-    from taptr.api.stream_frames import StreamFrames
+    from taptr.runtime.frames import StreamFrames
 
     counting = _Counting(model, monkeypatch)
     frames = StreamFrames(model, frames_per_call=4)

@@ -7,8 +7,9 @@ import torch
 import taptr
 from taptr.model.execution import get_execution
 from taptr.model.frame_tables import FrameTables
-from taptr.model.sliding_window import QuerySet, run_windows
+from taptr.model.sliding_window import run_windows
 from taptr.model.taptr import normalize_frames
+from taptr.model.trajectory import QuerySet
 from taptr.runtime.frames import EncodedFrames
 
 

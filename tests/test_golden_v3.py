@@ -15,7 +15,7 @@ import pytest
 import torch
 
 import taptr
-from taptr.model.sliding_window import QuerySet
+from taptr.model.trajectory import QuerySet
 from taptr.model.v3 import per_frame
 from taptr.runtime.frames import EncodedFrames
 from tests.helpers import golden_inputs, load_golden

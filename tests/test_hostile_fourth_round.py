@@ -22,9 +22,10 @@ import pytest
 import torch
 
 from taptr.runtime import step_capture
+from taptr.runtime.capture_buckets import points_bucket
 from taptr.runtime.capture_timing import CaptureTiming
 from taptr.runtime.measured import keep
-from taptr.runtime.step_capture import StepCapture, points_bucket
+from taptr.runtime.step_capture import StepCapture
 from tests.test_hostile_inputs import _error_line
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -104,7 +105,7 @@ def test_capture_on_says_one_line_before_it_compiles(monkeypatch, caplog):
 
 @pytest.mark.parametrize("text", ["47.0000001,10,10", "0,5,5;3.5,5,5"])
 def test_a_fractional_frame_is_an_error_naming_it(text):
-    from taptr.cli.points import parse_points
+    from taptr.cli.common.points import parse_points
 
     frame = re.search(r"(\d+\.\d+),", text).group(1)
     with pytest.raises(ValueError, match=rf"frame {re.escape(frame)} is not a whole frame index"):
@@ -112,13 +113,13 @@ def test_a_fractional_frame_is_an_error_naming_it(text):
 
 
 def test_whole_frames_written_as_decimals_are_frames():
-    from taptr.cli.points import parse_points
+    from taptr.cli.common.points import parse_points
 
     assert parse_points("47.0,10,10;4.7e1,1,2")[:, 0].tolist() == [47.0, 47.0]
 
 
 def test_a_fractional_frame_in_a_points_file_names_its_line(tmp_path):
-    from taptr.cli.points import read_points_file
+    from taptr.cli.common.points import read_points_file
 
     path = tmp_path / "points.txt"
     path.write_text("t x y\n0 1 1\n47.0000001 10 10\n")
@@ -152,7 +153,7 @@ def _predictor(context_points: int):
 
 
 def test_many_context_points_are_in_the_estimate_before_the_run(capsys):
-    from taptr.cli.run_memory import check_run_memory
+    from taptr.cli.common.run_memory import check_run_memory
 
     predictor = _predictor(10_000)
     args = argparse.Namespace(backward=False)
@@ -166,7 +167,7 @@ def test_many_context_points_are_in_the_estimate_before_the_run(capsys):
 
 
 def test_the_model_s_own_context_points_say_nothing(capsys):
-    from taptr.cli.run_memory import check_run_memory
+    from taptr.cli.common.run_memory import check_run_memory
 
     args = argparse.Namespace(backward=False)
     check_run_memory(

@@ -95,7 +95,7 @@ def test_gif_canvas_bomb_through_taptr_track_exits_2_before_the_model(tmp_path, 
 def test_mask_declaring_25000x25000_16_bit_rgba_is_refused_before_decoding(tmp_path, monkeypatch):
     import cv2
 
-    from taptr.apps.editing import read_mask
+    from taptr.api.regions import read_mask
 
     path = tmp_path / "mask.png"
     path.write_bytes(bombs.png_bomb(25_000, 25_000, depth=16, colour=6))
@@ -252,12 +252,12 @@ def test_config_value_nested_a_few_levels_or_too_long_is_named(tmp_path):
 
 
 def test_input_size_4096_is_refused_by_the_estimate_before_tracking(monkeypatch):
-    import taptr.api.predictor as predictor_module
     from taptr import build_model
     from taptr.api.predictor import Predictor
     from taptr.memory_estimate import MemoryEstimateError
+    from taptr.runtime.runner import Runner
 
-    monkeypatch.setattr(predictor_module, "run_tracker", lambda *a, **k: pytest.fail("tracked"))
+    monkeypatch.setattr(Runner, "track", lambda *a, **k: pytest.fail("tracked"))
     monkeypatch.setenv("TAPTR_MAX_MEMORY", "2G")
     with pytest.raises(MemoryEstimateError) as error:  # when built: before any timing
         Predictor(build_model("small").eval(), input_size=(4096, 4096), device="cpu")
@@ -326,13 +326,13 @@ def _read_checkpoint(path: Path) -> object:
 
 
 def _read_points(path: Path) -> object:
-    from taptr.cli.points import read_points_file
+    from taptr.cli.common.points import read_points_file
 
     return read_points_file(str(path))
 
 
 def _read_mask(path: Path) -> object:
-    from taptr.apps.editing import read_mask
+    from taptr.api.regions import read_mask
 
     return read_mask(path, name="--mask")
 

@@ -118,13 +118,13 @@ def test_measured_file_of_an_earlier_version_is_read_and_kept(tmp_path):
 
 
 def _no_timing(monkeypatch) -> None:
-    from taptr.api import predictor
+    from taptr.runtime import runner
 
     def fail(*args, **kwargs):
         pytest.fail("timed before the memory check")
 
     for name in ("choose_kernel", "choose_cpu_execution", "choose_frames_per_call"):
-        monkeypatch.setattr(predictor, name, fail)
+        monkeypatch.setattr(runner, name, fail)
 
 
 @pytest.mark.parametrize("preset", ["tiny", "tiny-v3"])
@@ -170,11 +170,12 @@ def test_taptrv3_at_4096_is_refused_up_front_on_this_machine():
 
 def test_float16_on_the_cpu_times_nothing(monkeypatch):
     from taptr.api import predictor
+    from taptr.runtime import runner
 
     def fail(*args, **kwargs):
         pytest.fail("timed float16 on the CPU")
 
-    monkeypatch.setattr(predictor, "choose_cpu_execution", fail)
+    monkeypatch.setattr(runner, "choose_cpu_execution", fail)
     monkeypatch.setattr(encode_choice, "time_frames_per_call", fail)
     model = taptr.build_model("tiny-v3").eval()
     chosen = predictor.Predictor(model, device="cpu", autocast=torch.float16, input_size=(32, 48))

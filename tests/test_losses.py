@@ -10,7 +10,7 @@ import torch
 
 import taptr
 from taptr.data.sampling import ClipBatch
-from taptr.model.sliding_window import TrackOutput
+from taptr.model.trajectory import TrackOutput
 from taptr.official.convert import convert_state_dict
 from taptr.train.forward import TrainingForward, batch_queries, batch_targets
 from taptr.train.losses import (

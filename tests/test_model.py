@@ -8,7 +8,8 @@ import torch
 import taptr
 from taptr.config import tiny
 from taptr.geometry import clamp_to_unit
-from taptr.model.sliding_window import QuerySet, run_windows
+from taptr.model.sliding_window import run_windows
+from taptr.model.trajectory import QuerySet
 from taptr.runtime.frames import EncodedFrames, PrecomputedFrames
 
 

@@ -46,8 +46,8 @@ def test_operations_per_frame_are_pinned(preset, size, frames, pinned):
 
 def test_taptrv3_step_waits_for_nothing_with_points_still_to_start():
     """Points starting later make the step mask them, not group them (no sync either)."""
-    from taptr.model.sliding_window import QuerySet
     from taptr.model.taptr import normalize_frames
+    from taptr.model.trajectory import QuerySet
     from taptr.model.v3.per_frame import run_frames
     from taptr.runtime.frames import EncodedFrames
 

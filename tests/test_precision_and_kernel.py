@@ -12,8 +12,8 @@ import torch
 import taptr
 from taptr.api.online import OnlineTracker
 from taptr.api.predictor import Predictor
+from taptr.cli.common.model_options import KERNEL_CHOICES, add_model_arguments, load_predictor
 from taptr.cli.main import main
-from taptr.cli.model_options import KERNEL_CHOICES, add_model_arguments, load_predictor
 from taptr.export import compile as compile_module
 from taptr.io.tracks import load_tracks_npz
 from taptr.io.video import write_video
@@ -99,7 +99,7 @@ def test_bfloat16_on_a_cpu_that_has_it_runs_the_products_in_bfloat16(model, vide
 
 
 def test_bfloat16_on_a_cpu_without_it_says_so_and_runs_float32(model, video, monkeypatch):
-    monkeypatch.setattr("taptr.api.predictor.native_bfloat16", lambda: False)
+    monkeypatch.setattr("taptr.runtime.runner.native_bfloat16", lambda: False)
     reference = Predictor(copy.deepcopy(model), device="cpu").track(video, QUERIES)
     with pytest.warns(UserWarning, match="no native bfloat16 .*: running float32"):
         predictor = Predictor(copy.deepcopy(model), device="cpu", autocast=torch.bfloat16)
@@ -167,7 +167,7 @@ def test_the_clis_kernel_choices_are_the_models():
 
 def test_model_options_reach_the_predictor(monkeypatch, video):
     # bfloat16 as on a CPU that has it, whatever this one has: nothing runs in it here
-    monkeypatch.setattr("taptr.api.predictor.native_bfloat16", lambda: True)
+    monkeypatch.setattr("taptr.runtime.runner.native_bfloat16", lambda: True)
     monkeypatch.setattr("taptr.model.ops.dense.native_bfloat16", lambda: True)
     assert load_predictor(_model_args()).autocast is None
     # a number of frames per call: nothing is timed (in bfloat16, which this CPU may lack)

@@ -21,10 +21,10 @@ from taptr.io.video import write_video
 
 RUNNER = """
 import json, sys
-import taptr.cli.options
+import taptr.cli.common.options
 from taptr.cli.main import main
 
-taptr.cli.options._gpu_device_files = lambda: False  # as on a machine without a GPU
+taptr.cli.common.options._gpu_device_files = lambda: False  # as on a machine without a GPU
 codes, torch_after = [], []
 for argv in json.loads(sys.argv[1]):
     codes.append(main(argv))

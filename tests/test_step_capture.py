@@ -16,19 +16,14 @@ import torch
 from taptr.api.online import OnlineTracker
 from taptr.api.predictor import Predictor
 from taptr.model.build import build_model
-from taptr.model.sliding_window import QuerySet
 from taptr.model.taptr import normalize_frames
+from taptr.model.trajectory import QuerySet
 from taptr.model.v3 import per_frame
 from taptr.runtime import step_capture
+from taptr.runtime.capture_buckets import BUCKET, pad_points, points_bucket
 from taptr.runtime.frames import EncodedFrames
 from taptr.runtime.measured import keep, kept_choice
-from taptr.runtime.step_capture import (
-    BUCKET,
-    CaptureTiming,
-    StepCapture,
-    pad_points,
-    points_bucket,
-)
+from taptr.runtime.step_capture import CaptureTiming, StepCapture
 
 
 @pytest.fixture(autouse=True)
@@ -212,10 +207,10 @@ def test_the_predictor_replays_a_captured_step_with_the_eager_tracks(eager_backe
     eager = _predictor("off", kernel).track(video, queries)
     predictor = _predictor("on", kernel)
     steps = []
-    original = predictor.decoder_step
-    predictor.decoder_step = lambda *a: steps.append(original(*a)) or steps[-1]
+    original = predictor.runner.engine.step_for
+    predictor.runner.engine.step_for = lambda *a: steps.append(original(*a)) or steps[-1]
     captured = predictor.track(video, queries)
-    assert steps and steps[0].captured and steps[0].calls >= 4
+    assert steps and steps[0].captured and steps[0].frames_left <= len(video) - 4
     np.testing.assert_allclose(captured.tracks, eager.tracks, atol=1e-4)
     np.testing.assert_array_equal(captured.visibility, eager.visibility)
 
@@ -257,8 +252,8 @@ def test_a_cpu_in_bfloat16_keeps_the_eager_step():
         autocast=torch.bfloat16,
         capture="on",
     )
-    assert predictor.decoder_step(16, 100) is None
-    assert _predictor("on").decoder_step(16, 100).captured
+    assert predictor.runner.decoder_step(16, 100) is None
+    assert _predictor("on").runner.decoder_step(16, 100).captured
 
 
 def test_taptr_track_capture_on_writes_the_eager_tracks(eager_backend, tmp_path):
@@ -290,7 +285,6 @@ def test_the_captured_step_reproduces_the_official_golden_cases(
     eager_backend, official_v3_checkpoint, case
 ):
     import taptr
-    from taptr.runtime.drivers import run_tracker
     from tests.helpers import golden_inputs, load_golden
 
     golden = load_golden(case)
@@ -300,9 +294,9 @@ def test_the_captured_step_reproduces_the_official_golden_cases(
     history = 16 if case == "v3_r18_fifo" else None
     outputs = {}
     for capture in ("off", "on"):
-        step = StepCapture(model.decoder, torch.device("cpu"), capture, _key, 1, None)
+        step = StepCapture(model.decoder, torch.device("cpu"), capture, _key, 1, video.shape[1])
         with torch.no_grad():
-            outputs[capture] = run_tracker(
+            outputs[capture] = per_frame.run_frames(
                 model,
                 queries,
                 video.shape[1],
@@ -311,7 +305,7 @@ def test_the_captured_step_reproduces_the_official_golden_cases(
                 history_frames=history,
                 step=step if capture == "on" else None,
             ).positions[0]
-    assert step.captured and step.calls > 1
+    assert step.captured and step.frames_left < video.shape[1] - 1
     # normalised positions: the captured step against the eager one, and the official code
     torch.testing.assert_close(outputs["on"], outputs["off"], atol=1e-5, rtol=0)
     official = torch.from_numpy(golden["out_pred_xy_norm"]).transpose(0, 1).float()

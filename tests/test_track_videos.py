@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 import taptr
+from taptr.cli.common.videos import expand_videos, result_folders
 from taptr.cli.main import main
-from taptr.cli.videos import expand_videos, result_folders
 from taptr.io.tracks import load_tracks_npz
 from taptr.io.video import read_video, write_video
 from tests.helpers import run_torchrun
@@ -194,7 +194,8 @@ def test_backward_tracking_streams_and_equals_the_predictor(
 def test_edit_streams_and_equals_the_in_memory_edit(clips, checkpoint, tmp_path, query_frame):
     import argparse
 
-    from taptr.apps.editing import overlay_region, sample_region_queries
+    from taptr.api.regions import sample_region_queries
+    from taptr.apps.editing import overlay_region
     from taptr.cli.edit import _edited_frames
 
     mask = np.zeros((48, 64), bool)

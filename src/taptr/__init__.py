@@ -5,8 +5,7 @@ Heavy modules (torch, the model) are imported on first use of a name, not at imp
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from taptr.lazy import lazy_names
 
 __version__ = "0.1.0"
 
@@ -28,8 +27,4 @@ _EXPORTS = {
 __all__ = ["__version__", *sorted(_EXPORTS)]
 
 
-def __getattr__(name: str) -> Any:
-    module = _EXPORTS.get(name)
-    if module is None:
-        raise AttributeError(f"module 'taptr' has no attribute {name!r}")
-    return getattr(importlib.import_module(module), name)
+__getattr__ = lazy_names(__name__, _EXPORTS)

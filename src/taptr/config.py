@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any, Literal, get_args
 
 BackboneKind = Literal["resnet50", "resnet18", "convnet"]
 CrossAttentionKind = Literal["key_aware", "standard"]
@@ -22,7 +22,8 @@ SupportKind = Literal["random", "local_and_grid", "grid", "none"]
 RESNET50_CHANNELS = (256, 512, 1024, 2048)
 RESNET18_CHANNELS = (64, 128, 256, 512)
 RESNET_CHANNELS = {"resnet50": RESNET50_CHANNELS, "resnet18": RESNET18_CHANNELS}
-SUPPORT_KINDS = ("random", "local_and_grid", "grid", "none")
+SUPPORT_KINDS: tuple[str, ...] = get_args(SupportKind)
+"""The support schemes by name (`SupportKind`'s), for checks and choices."""
 
 MAX_WIDTH = 4096
 """Largest channel count (d_model, backbone widths); the paper uses 256 and 2048."""
@@ -69,6 +70,23 @@ BOOL_FIELDS = (
 
 INPUT_SIZE_RANGE = (16, 4096)
 """Range of each of the model input's height and width."""
+
+
+def check_history_frames(history_frames: object, name: str = "history_frames") -> int:
+    """The TAPTRv3 history limit the rule allows: 0 (every frame) or at least 2 frames.
+
+    One held frame would be the current one alone, which the long-temporal attention
+    reads anyway; the rule is checked here for every reader of a limit (the config, the
+    predictor, the export and the command line, which passes its flag as ``name``).
+
+    Raises:
+        ValueError: not a whole number, below 0, or 1.
+    """
+    if isinstance(history_frames, bool) or not isinstance(history_frames, int):
+        raise ValueError(f"{name} must be a whole number, got {history_frames!r}")
+    if history_frames < 0 or history_frames == 1:
+        raise ValueError(f"{name} must be 0 (the whole video) or at least 2, got {history_frames}")
+    return history_frames
 
 
 def _check_int(name: str, value: Any, low: int, high: int) -> None:
@@ -300,8 +318,7 @@ class ModelConfig:
             raise ValueError("version 3 always has its long-temporal attention")
         if self.context_patch % 2 == 0:
             raise ValueError(f"context_patch must be odd, got {self.context_patch}")
-        if self.history_frames == 1:
-            raise ValueError("history_frames must be 0 (the whole clip) or at least 2")
+        check_history_frames(self.history_frames)
 
     @property
     def num_levels(self) -> int:

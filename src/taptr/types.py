@@ -7,6 +7,7 @@ top-left pixel); queries are (t, x, y). Visibility is True where the point is vi
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -16,8 +17,12 @@ if TYPE_CHECKING:  # keeps torch out of the import of the data readers and the C
     from torch import Tensor
 
 AUTOCAST_TYPES = ("float32", "bfloat16", "float16")
-"""Names of the types a model can run in under autocast (`taptr.api.predictor.autocast_type`);
-float32 runs without autocast. Here, without torch, for the CLI's choices."""
+"""Names of the types a model can run in under autocast
+(`taptr.runtime.precision.autocast_type`); float32 runs without autocast. Here, without
+torch, for the CLI's choices."""
+
+OnStep = Callable[[], object] | None
+"""Called after each window or frame a run decodes (progress bars); None: nothing is."""
 
 CAPTURE_CHOICES = ("auto", "on", "off")
 """Whether TAPTRv3's per-frame step is captured and replayed (`taptr.runtime.step_capture`):

@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from taptr.geometry import pixels_to_normalized
-from taptr.model.sliding_window import QuerySet
+from taptr.model.trajectory import QuerySet
 
 PREFIX_FRAMES = 12
 """Context points start on a frame drawn from [0, min(12, T)) (the official demo)."""

@@ -1,15 +1,16 @@
 """Online tracking: feed frames as they arrive, add and remove points at any time.
 
-All state lives in an explicit `StreamState` that the caller holds and passes back in.
-Frames are prepared as they arrive, encoded by the predictor's frame cache when the first
-window reads them (`taptr.api.stream_frames`), and dropped once no window can read them, so
-memory is bounded by the window, not the stream.
+All state lives in an explicit `StreamState` that the caller holds and passes back in. The
+model runs through the predictor's `taptr.runtime.runner.Runner`, as for a whole video:
+frames are prepared as they arrive, encoded by the runner's frame cache when the first
+window reads them (`taptr.runtime.frames.StreamFrames`), and dropped once no window can read
+them, so memory is bounded by the window, not the stream.
 
 A window is decoded once a frame after its last frame has arrived (so that a point added
 on the newest frame still joins it), and a frame's tracks are returned once no later
 window can change them: at most about one window (8 frames) behind the newest frame.
 TAPTRv3 decodes frame by frame: each frame is decoded, and returned, once the next one
-has arrived (`taptr.api.engines`).
+has arrived (`taptr.runtime.engines`).
 
 Context or support points (`Predictor.with_support`) are drawn when the first window is
 decoded, from the points known then, and are never returned; points added later join them.
@@ -31,14 +32,15 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from taptr.api.engines import FrameStream, StreamEngine, engine_for
 from taptr.api.inputs import query_tensor, video_tensor
 from taptr.api.predictor import Predictor
 from taptr.api.queries import model_queries, on_own_frames
-from taptr.api.stream_frames import StreamFrames
 from taptr.api.support import LOCAL_OFFSETS, local_points
 from taptr.geometry import normalized_to_pixels
-from taptr.model.sliding_window import QuerySet, TrackerState
+from taptr.model.trajectory import QuerySet, TrackerState
+from taptr.runtime.engines import Engine
+from taptr.runtime.frame_engine import FrameStream
+from taptr.runtime.frames import StreamFrames
 
 
 class FrameCountError(ValueError):
@@ -120,14 +122,16 @@ class StreamUpdate:
 
 
 class OnlineTracker:
-    """Streaming front end of a `Predictor` (one video at a time, forward in time)."""
+    """Streaming front end of a `Predictor` (one video at a time, forward in time).
+
+    Pixels, queries and support points are the predictor's; the model runs through the
+    predictor's runner (`Predictor.runner`), whose engine decodes the stream unit by unit.
+    """
 
     def __init__(self, predictor: Predictor) -> None:
         self.predictor = predictor
-        self.model = predictor.model
-        self.engine: StreamEngine = engine_for(
-            predictor.model, predictor.history_frames, predictor.decoder_step
-        )
+        self.runner = predictor.runner
+        self.engine: Engine = predictor.runner.engine
 
     def start(
         self, num_frames: int | None = None, frame_size: tuple[int, int] | None = None
@@ -138,15 +142,10 @@ class OnlineTracker:
             num_frames: total length, when known (makes long streams equal to offline).
             frame_size: (H, W) of the frames, needed to add queries before the first frame.
         """
-        device, dtype = self.predictor.device, self.predictor.dtype
+        device, dtype = self.runner.device, self.runner.dtype
         empty = model_queries(torch.zeros(0, 3), 1, 1, device, dtype)  # no points: any size
-        tracker = self.engine.start(empty, num_frames, dtype)
-        return StreamState(
-            tracker,
-            num_frames,
-            frame_size,
-            StreamFrames(self.model, self.predictor.frames_per_call),
-        )
+        tracker = self.engine.start(empty, num_frames)
+        return StreamState(tracker, num_frames, frame_size, self.runner.stream_frames())
 
     def add_queries(self, state: StreamState, queries: np.ndarray | Tensor) -> list[int]:
         """Adds points given as (N, 3) (t, x, y) pixels; returns their identifiers.
@@ -163,7 +162,7 @@ class OnlineTracker:
         new = query_tensor(queries, 1, state.num_frames, height, width)[0]  # (N, 3)
         if bool((new[:, 0] <= state.last_decoded).any()):
             raise ValueError(f"query frames must come after frame {state.last_decoded}")
-        points = model_queries(new, height, width, self.predictor.device, self.predictor.dtype)
+        points = model_queries(new, height, width, self.runner.device, self.runner.dtype)
         self.engine.add_points(state.tracker, points)
         ids = list(range(state.next_id, state.next_id + new.shape[0]))
         state.next_id += new.shape[0]
@@ -188,7 +187,7 @@ class OnlineTracker:
         gone = torch.tensor(sorted(removed), dtype=torch.long)
         keep_tracked = state.is_context & ~torch.isin(state.support_of, gone)
         keep_tracked[~state.is_context] = keep
-        self.engine.keep_points(state.tracker, keep_tracked.to(self.predictor.device))
+        self.engine.keep_points(state.tracker, keep_tracked.to(self.runner.device))
         state.is_context = state.is_context[keep_tracked]
         state.support_of = state.support_of[keep_tracked]
         state.queries = state.queries[keep]
@@ -274,8 +273,7 @@ class OnlineTracker:
     def _decode(self, state: StreamState, first: int, last: int) -> None:
         if not state.context_added:
             self._add_context(state)
-        with self.predictor.precision():
-            self.engine.decode(state.tracker, (first, last), state.encoded)
+        self.runner.decode(state.tracker, (first, last), state.encoded)
         state.last_decoded = last
 
     def _emit(self, state: StreamState, bound: int) -> StreamUpdate:

@@ -1,9 +1,12 @@
 """`Predictor`: pixels and (t, x, y) queries in, tracks and visibility out.
 
-The predictor hides everything but the task: it resizes frames to the model's input size,
-encodes them window by window, runs the sliding-window driver, maps positions back to the
-input pixels per axis, returns each query exactly on its own frame, and optionally tracks
-backwards in time (a second pass over the time-reversed video).
+The predictor holds what belongs to the task: it resizes the frames to the model's input
+size, turns pixel queries into the model's points and surrounds them with context or
+support points, hands both to its `taptr.runtime.runner.Runner` (which runs the model on
+this machine: device, precision, the speed choices, TAPTRv3's captured step, windows or
+frames), maps positions back to the input pixels per axis, returns each query exactly on
+its own frame, and optionally tracks backwards in time (a second pass over the
+time-reversed video).
 
 Coordinates are pixel centres at integers in both the input video and the model input;
 the model's normalised units are x / (W − 1), y / (H − 1), so (0, 0) and (W − 1, H − 1)
@@ -12,11 +15,8 @@ map onto each other across resolutions (the official convention).
 
 from __future__ import annotations
 
-import contextlib
-import logging
 import os
-import warnings
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -27,31 +27,19 @@ from tqdm.auto import tqdm
 from taptr.api.backward import needs_backward, track_both_ways
 from taptr.api.context import with_context
 from taptr.api.inputs import grid_queries, query_tensor, video_tensor
+from taptr.api.prepared_frames import PreparedFrames
 from taptr.api.queries import model_queries, on_own_frames
 from taptr.api.resize import resize_frames
 from taptr.api.support import GRID_POINTS, LOCAL_OFFSETS, with_support
-from taptr.config import SUPPORT_KINDS
+from taptr.config import SUPPORT_KINDS, ModelConfig
 from taptr.geometry import normalized_to_pixels
 from taptr.memory_estimate import check_memory, estimate_tracking
-from taptr.model.ops.dense import bfloat16_products, native_bfloat16
-from taptr.model.sliding_window import QuerySet
 from taptr.model.taptr import TAPTR, normalize_frames
-from taptr.model.v3.taptr import TAPTRv3
-from taptr.runtime.cpu_choice import choose_cpu_execution
-from taptr.runtime.denormals import flushed_denormals
-from taptr.runtime.drivers import run_tracker, step_count
-from taptr.runtime.encode_choice import choose_frames_per_call
-from taptr.runtime.frames import EncodedFrames
-from taptr.runtime.kernel_choice import choose_kernel
-from taptr.runtime.step_capture import (
-    StepCapture,
-    capture_key,
-    pad_points,
-    points_bucket,
-)
-from taptr.types import AUTOCAST_TYPES, CAPTURE_CHOICES, TrackingResult
-
-logger = logging.getLogger(__name__)
+from taptr.model.trajectory import QuerySet
+from taptr.runtime.precision import autocast_type as autocast_type  # re-exported: public
+from taptr.runtime.precision import precision_context as precision_context  # re-exported
+from taptr.runtime.runner import Runner
+from taptr.types import TrackingResult
 
 VideoInput = np.ndarray | Tensor | str | os.PathLike
 
@@ -59,40 +47,8 @@ LOCAL_SUPPORT_BUDGET = 2048
 """With the default support, TAPTRv3 gets 63 local points per query only while that keeps
 it at or below this many points (32 queries); more queries get the 36 grid points alone,
 and support each other. docs/RESULTS.md ("Support points for TAPTRv3's queries") measures
-both sides on a trained small TAPTRv3: the local points make a frame 5, 16 and about 90
-times dearer than the grid alone at 8, 32 and 256 queries, for no accuracy there (all
-schemes within 0.3 AJ); the released weights keep the official scheme they were evaluated
-with, up to this budget."""
-SUPPORT_CHOICES = SUPPORT_KINDS
-
-
-def autocast_type(name: str) -> torch.dtype | None:
-    """The ``autocast`` of a `taptr.types.AUTOCAST_TYPES` name (``float32``: None, no autocast).
-
-    Raises:
-        ValueError: for another name; the message lists the known ones.
-    """
-    if name not in AUTOCAST_TYPES:
-        raise ValueError(f"unknown dtype {name!r}; expected one of {', '.join(AUTOCAST_TYPES)}")
-    return None if name == "float32" else getattr(torch, name)
-
-
-@contextlib.contextmanager
-def precision_context(device_type: str, autocast: torch.dtype | None) -> Iterator[None]:
-    """The context a model runs in for an ``autocast`` type (None: float32 as it is).
-
-    ``torch.autocast`` on accelerators; on the CPU, bfloat16 is oneDNN bfloat16 products
-    (`bfloat16_products`, with the trunk stored by `TAPTR.bfloat16_trunk`), and denormal
-    floats are flushed to zero (`taptr.runtime.denormals`). Entered when the block starts.
-    """
-    if autocast is None:
-        products: contextlib.AbstractContextManager[object] = contextlib.nullcontext()
-    elif autocast == torch.bfloat16 and device_type == "cpu":
-        products = bfloat16_products()
-    else:
-        products = torch.autocast(device_type, dtype=autocast)
-    with flushed_denormals(device_type), products:
-        yield
+what the local points cost per frame against the grid alone, and what they bring; the
+released weights keep the official scheme they were evaluated with, up to this budget."""
 
 
 class Predictor:
@@ -150,6 +106,11 @@ class Predictor:
             outputs are the eager step's up to float rounding. Not on a CPU in bfloat16.
         source: the checkpoint's name or path, for messages.
         notice: what to tell users about the model (the default model's fallback line).
+
+    Attributes:
+        runner: how the model runs on this machine (`taptr.runtime.runner.Runner`), made
+            from ``device``, ``dtype``, ``autocast``, ``kernel``, ``frames_per_call``,
+            ``history_frames`` and ``capture``; the online tracker runs through it too.
     """
 
     checkpoint_path: str | os.PathLike[str] | None = None
@@ -173,82 +134,58 @@ class Predictor:
         source: str | None = None,
         notice: str | None = None,
     ) -> None:
-        if device is None:
-            device = "cuda" if torch.cuda.is_available() else "cpu"
-        self.device = torch.device(device)
-        self.dtype = dtype
-        self.model = model.to(self.device, dtype).eval()
-        if autocast not in (None, torch.float16, torch.bfloat16):
-            raise ValueError(
-                f"autocast must be torch.float16, torch.bfloat16 or None, got {autocast}"
-            )
-        if autocast == torch.bfloat16 and self.device.type == "cpu" and not native_bfloat16():
-            warnings.warn(
-                "this CPU has no native bfloat16 (AVX512-BF16 or AMX): running float32",
-                stacklevel=2,
-            )
-            autocast = None
-        if autocast == torch.bfloat16 and self.device.type == "cpu":
-            self.model.bfloat16_trunk()
-        self.autocast = autocast
         config = model.config
         height, width = input_size or (config.input_size if config else (512, 512))
         self.input_size: tuple[int, int] = (int(height), int(width))
+        self.runner = Runner(
+            model,
+            input_size=self.input_size,
+            device=device,
+            dtype=dtype,
+            autocast=autocast,
+            history_frames=history_frames,
+            capture=capture,
+        )
+        self.model = self.runner.model
         self.resize = config.resize if config else "bilinear"
-        if context_points is None:
-            context_points = config.context_points if config else 0
-        if isinstance(context_points, bool) or not isinstance(context_points, int):
-            raise ValueError(f"context_points must be a whole number, got {context_points!r}")
-        if context_points < 0:
-            raise ValueError(f"context_points must be >= 0, got {context_points}")
-        self.context_points = context_points
-        if support_points is not None and support_points not in SUPPORT_CHOICES:
-            choices = ", ".join(SUPPORT_CHOICES)
+        self.context_points = _context_points(context_points, config)
+        if support_points is not None and support_points not in SUPPORT_KINDS:
+            choices = ", ".join(SUPPORT_KINDS)
             raise ValueError(f"support_points must be one of {choices}, got {support_points!r}")
         self.support_points = support_points
-        if history_frames is not None:
-            if not isinstance(model, TAPTRv3):
-                raise ValueError("history_frames applies to TAPTRv3 models only")
-            if isinstance(history_frames, bool) or not isinstance(history_frames, int):
-                raise ValueError(f"history_frames must be a whole number, got {history_frames!r}")
-            if history_frames < 0 or history_frames == 1:
-                raise ValueError(
-                    "history_frames must be 0 (the whole video) or at least 2, "
-                    f"got {history_frames}"
-                )
-        self.history_frames = history_frames
-        if capture not in CAPTURE_CHOICES:
-            choices = ", ".join(CAPTURE_CHOICES)
-            raise ValueError(f"capture must be one of {choices}, got {capture!r}")
-        if capture == "on" and not isinstance(model, TAPTRv3):
-            raise ValueError("capture applies to TAPTRv3 models only (others: --compile)")
-        self.capture = capture
+        self.visibility_threshold = _visibility_threshold(visibility_threshold, config)
         self.source = source
         self.notice = notice
-        if visibility_threshold is None:
-            visibility_threshold = config.visibility_threshold if config else 0.5
-        if not 0 < visibility_threshold < 1:
-            raise ValueError(f"visibility_threshold must lie in (0, 1), got {visibility_threshold}")
-        self.visibility_threshold = visibility_threshold
         # the smallest run's memory before any timing: timing an input size that cannot
         # run would take minutes and gigabytes only to be refused after it
-        self.frames_per_call = 1
         self._check_memory(1, 0, (1, 1), False, smallest=True)
         # last: these time the model, which only a valid predictor needs
-        self.frames_per_call = self._choose_speed_settings(kernel, frames_per_call)
+        self.runner.choose_speed(kernel, frames_per_call)
 
-    def _choose_speed_settings(self, kernel: str, frames_per_call: int | str) -> int:
-        """Sets the kernel and CPU execution, timed where asked; returns frames per call."""
-        choose_kernel(self.model, self.device, kernel, self.input_size)
-        # float16 on a CPU runs most kernels without native support, minutes per timing:
-        # nothing is timed there, one frame per call (float32 or bfloat16 are faster)
-        cpu_float16 = self.device.type == "cpu" and self.autocast == torch.float16
-        if cpu_float16 and frames_per_call == "auto":
-            frames_per_call = 1
-        with self.precision():
-            if self.device.type == "cpu" and not cpu_float16:
-                choose_cpu_execution(self.model, self.input_size)
-            return choose_frames_per_call(self.model, self.device, self.input_size, frames_per_call)
+    @property
+    def device(self) -> torch.device:
+        """Where the model runs (the runner's)."""
+        return self.runner.device
+
+    @property
+    def dtype(self) -> torch.dtype:
+        """Floating type of the model's weights and inputs."""
+        return self.runner.dtype
+
+    @property
+    def autocast(self) -> torch.dtype | None:
+        """The autocast type the model runs in (None: ``dtype`` throughout)."""
+        return self.runner.autocast
+
+    @property
+    def frames_per_call(self) -> int:
+        """Frames encoded per encoder call, as chosen."""
+        return self.runner.frames_per_call
+
+    @property
+    def history_frames(self) -> int | None:
+        """TAPTRv3's history limit as asked (None: the model's)."""
+        return self.runner.history_frames
 
     @classmethod
     def from_pretrained(
@@ -315,12 +252,11 @@ class Predictor:
         assert queries is not None
         query = query_tensor(queries, batch, num_frames, height, width)
         self._check_memory(num_frames, query.shape[1], (height, width), backward)
-        steps = step_count(self.model, num_frames)
+        engine = self.runner.engine
         # the reversed pass runs only for videos with a query after frame 0
         passes = sum(1 + (backward and needs_backward(query[b])) for b in range(batch))
-        total = steps * passes
-        unit = "frame" if isinstance(self.model, TAPTRv3) else "window"
-        with tqdm(total=total, desc="tracking", unit=unit, disable=not progress) as bar:
+        total = engine.steps(num_frames) * passes
+        with tqdm(total=total, desc="tracking", unit=engine.unit, disable=not progress) as bar:
             results = [
                 self._track_one(frames[b], query[b], backward, bar.update) for b in range(batch)
             ]
@@ -417,33 +353,6 @@ class Predictor:
             return with_context(queries, self.context_points, self.input_size, num_frames)
         return with_support(queries, scheme)
 
-    def decoder_step(self, num_points: int | None, num_frames: int | None) -> StepCapture | None:
-        """TAPTRv3's per-frame decoder step as `capture` says (None: the model's own).
-
-        Args:
-            num_points: points the model tracks (support included), or None for a stream
-                (read from the first frame decoded).
-            num_frames: frames this run decodes, or None for a stream.
-        """
-        if not isinstance(self.model, TAPTRv3) or self.capture == "off":
-            return None
-        if self.device.type == "cpu" and self.autocast == torch.bfloat16:
-            # the CPU's bfloat16 products are switched by a context variable, which a
-            # compiled step reads once, when traced: its outputs were measured neither
-            # float32's nor eager bfloat16's (docs/BENCHMARKS.md)
-            return None
-        precision = f"{self.dtype} autocast {self.autocast}"
-        key = capture_key(self.device, self.model.config, self.input_size, precision)
-        model = self.model
-        return StepCapture(model.decoder, self.device, self.capture, key, num_points, num_frames)
-
-    def precision(self) -> contextlib.AbstractContextManager[object]:
-        """The context every model call runs in: autocast when the predictor asks for it.
-
-        On the CPU, bfloat16 runs as oneDNN bfloat16 products (`bfloat16_products`).
-        """
-        return precision_context(self.device.type, self.autocast)
-
     def _track_one(
         self, frames: Tensor, queries: Tensor, backward: bool, on_window: Callable[[], object]
     ) -> tuple[Tensor, Tensor]:
@@ -467,29 +376,10 @@ class Predictor:
         window by window, without a reversed copy of the whole video.
         """
         num_frames, _, height, width = frames.shape
-        dtype = self.dtype
-        query_set = model_queries(queries, height, width, self.device, dtype)
+        query_set = model_queries(queries, height, width, self.device, self.dtype)
         query_set = self.with_support(query_set, num_frames)
-        step = self.decoder_step(query_set.start_frames.shape[1], num_frames)
-        if step is not None and step.captured:  # nearby point counts replay one capture
-            query_set = pad_points(query_set, points_bucket(query_set.start_frames.shape[1]))
-
-        def load(first: int, last: int) -> Tensor:
-            if reverse:
-                return self.prepare(frames[num_frames - 1 - last : num_frames - first].flip(0))
-            return self.prepare(frames[first : last + 1])
-
-        with self.precision():
-            output = run_tracker(
-                self.model,
-                query_set,
-                num_frames,
-                EncodedFrames(self.model, load, self.frames_per_call, num_frames),
-                dtype,
-                on_window,
-                history_frames=self.history_frames,
-                step=step,
-            )
+        load = PreparedFrames(frames, self.prepare, reverse)
+        output = self.runner.track(query_set, num_frames, load, on_window)
         real = queries.shape[0]  # context points come after the user's and are dropped
         positions = output.positions[0, :, :real].float()
         logits = output.visibility_logits[0, :, :real, 1].float()
@@ -507,3 +397,31 @@ def _read_if_path(video: VideoInput) -> np.ndarray | Tensor:
 
         return read_video(video)
     return video
+
+
+def _context_points(context_points: int | None, config: ModelConfig | None) -> int:
+    """The context points asked for, else the config's (0 without one).
+
+    Raises:
+        ValueError: not a whole number, or below 0.
+    """
+    if context_points is None:
+        context_points = config.context_points if config else 0
+    if isinstance(context_points, bool) or not isinstance(context_points, int):
+        raise ValueError(f"context_points must be a whole number, got {context_points!r}")
+    if context_points < 0:
+        raise ValueError(f"context_points must be >= 0, got {context_points}")
+    return context_points
+
+
+def _visibility_threshold(threshold: float | None, config: ModelConfig | None) -> float:
+    """The threshold asked for, else the config's (0.5 without one).
+
+    Raises:
+        ValueError: outside (0, 1).
+    """
+    if threshold is None:
+        threshold = config.visibility_threshold if config else 0.5
+    if not 0 < threshold < 1:
+        raise ValueError(f"visibility_threshold must lie in (0, 1), got {threshold}")
+    return threshold

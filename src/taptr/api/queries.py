@@ -12,7 +12,7 @@ import torch
 from torch import Tensor
 
 from taptr.geometry import pixels_to_normalized
-from taptr.model.sliding_window import QuerySet
+from taptr.model.trajectory import QuerySet
 
 
 def model_queries(

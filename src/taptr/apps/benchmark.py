@@ -145,7 +145,7 @@ def _stage_timer(model: nn.Module, device: str) -> Iterator[dict[str, float]]:
 
 
 def _inputs(config: BenchConfig) -> tuple[torch.Tensor, Any]:
-    from taptr.model.sliding_window import QuerySet
+    from taptr.model.trajectory import QuerySet
 
     generator = torch.Generator().manual_seed(config.seed)
     # uint8 frames, as a decoded video: holding 300 frames as float32 would be most of the
@@ -168,9 +168,9 @@ def _track(
     steps: list[float] | None = None,
     frames_per_call: int = 1,
 ) -> Any:
-    from taptr.model.sliding_window import QuerySet
     from taptr.model.taptr import normalize_frames
-    from taptr.runtime.drivers import run_tracker
+    from taptr.model.trajectory import QuerySet
+    from taptr.runtime.engines import run_tracker
     from taptr.runtime.frames import EncodedFrames, PrecomputedFrames
 
     device = torch.device(config.device)
@@ -203,7 +203,6 @@ def _track(
         torch.float32,
         on_step,
         history_frames=config.history_frames,
-        static_shapes=config.compile,  # TAPTRv3: one compiled decoder for every frame
     )
 
 
@@ -272,8 +271,8 @@ def run_case(config: BenchConfig, positions_out: str | None = None) -> BenchResu
 
 
 def _precision(config: BenchConfig) -> contextlib.AbstractContextManager[object]:
-    """What the predictor runs in for this dtype (`taptr.api.predictor.precision_context`)."""
-    from taptr.api.predictor import autocast_type, precision_context
+    """What the predictor runs in for this dtype (`taptr.runtime.precision.precision_context`)."""
+    from taptr.runtime.precision import autocast_type, precision_context
 
     return precision_context(torch.device(config.device).type, autocast_type(config.dtype))
 

@@ -6,12 +6,12 @@ import argparse
 import json
 from pathlib import Path
 
-from taptr.cli.model_options import (
+from taptr.cli.common.model_options import (
     add_model_arguments,
     check_model_arguments,
     load_predictor,
 )
-from taptr.cli.options import check_at_least, check_output_folder
+from taptr.cli.common.options import check_at_least, check_output_folder
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:

@@ -8,7 +8,7 @@ import os
 import shlex
 import sys
 
-from taptr.cli.options import (
+from taptr.cli.common.options import (
     add_device_argument,
     add_frames_per_call_argument,
     check_at_least,

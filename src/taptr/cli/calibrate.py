@@ -6,8 +6,8 @@ import argparse
 import json
 from pathlib import Path
 
-from taptr.cli.model_options import CHECKPOINT_HELP, check_checkpoint_name
-from taptr.cli.options import (
+from taptr.cli.common.model_options import CHECKPOINT_HELP, check_checkpoint_name
+from taptr.cli.common.options import (
     add_device_argument,
     check_at_least,
     check_device,

@@ -11,7 +11,7 @@ import importlib.util
 import ipaddress
 import sys
 
-from taptr.cli.model_options import (
+from taptr.cli.common.model_options import (
     add_model_arguments,
     check_model_arguments,
     load_predictor,

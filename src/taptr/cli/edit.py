@@ -7,13 +7,13 @@ import logging
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from taptr.cli.model_options import (
+from taptr.cli.common.model_options import (
     add_model_arguments,
     check_model_arguments,
     load_predictor,
 )
-from taptr.cli.options import check_at_least, check_output_file
-from taptr.cli.run_memory import check_run_memory
+from taptr.cli.common.options import check_at_least, check_output_file
+from taptr.cli.common.run_memory import check_run_memory
 
 if TYPE_CHECKING:
     from collections.abc import Iterator
@@ -114,7 +114,7 @@ def _checked_inputs(
     Returns:
         The video's header, the region mask, the overlay image and the region's queries.
     """
-    from taptr.apps.editing import read_mask, sample_region_queries
+    from taptr.api.regions import read_mask, sample_region_queries
     from taptr.io.video import read_video, video_info
     from taptr.query_checks import check_num_points
 

@@ -9,8 +9,8 @@ from __future__ import annotations
 import argparse
 import pickle
 
-from taptr.cli.model_options import CHECKPOINT_HELP, SUPPORT_CHOICES
-from taptr.cli.options import (
+from taptr.cli.common.model_options import CHECKPOINT_HELP, SUPPORT_CHOICES
+from taptr.cli.common.options import (
     add_device_argument,
     check_at_least,
     check_device,

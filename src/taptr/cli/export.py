@@ -15,8 +15,9 @@ from __future__ import annotations
 import argparse
 import time
 
-from taptr.cli.model_options import CHECKPOINT_HELP, check_checkpoint_name
-from taptr.cli.options import check_at_least, check_input_size, check_output_folder
+from taptr.cli.common.model_options import CHECKPOINT_HELP, check_checkpoint_name
+from taptr.cli.common.options import check_at_least, check_input_size, check_output_folder
+from taptr.config import check_history_frames
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -79,9 +80,7 @@ def run(args: argparse.Namespace) -> int:
     for flag in ("check_frames", "check_points", "repeats", "threads"):
         check_at_least(getattr(args, flag), 1, "--" + flag.replace("_", "-"))
     if args.history_frames is not None:
-        check_at_least(args.history_frames, 0, "--history-frames")
-        if args.history_frames == 1:
-            raise ValueError("--history-frames must be 0 (the whole video) or at least 2")
+        check_history_frames(args.history_frames, "--history-frames")
     check_checkpoint_name(args.checkpoint)
     import torch
 

@@ -1,13 +1,14 @@
 """Entry point of the ``taptr`` command: one subcommand per module of this package.
 
+`COMMANDS` lists them; what they share is `taptr.cli.common`, whose modules are no commands.
 Each subcommand module defines ``add_parser(subparsers)``, which registers its parser and
 sets ``func(args) -> int``. Every failure prints one line ``taptr COMMAND: error: ...``:
 bad arguments and files exit with status 2 (so does a run whose estimated memory exceeds
 what the machine has, `taptr.memory_estimate`), running out of memory anyway and bugs
 with 1 (an allocator's failure names the knobs to turn; bugs say so, and ``-v`` shows their
 traceback), Ctrl-C with 130 and SIGTERM with 143; temporary files are removed on the way
-out. Before the command runs, `taptr.cli.guards` checks numeric options and ``TAPTR_MAX_*``
-variables and quiets third-party log lines.
+out. Before the command runs, `taptr.cli.common.guards` checks numeric options and
+``TAPTR_MAX_*`` variables and quiets third-party log lines.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from typing import NoReturn
 
-from taptr.cli import guards
+from taptr.cli.common import guards
 
 COMMANDS = (
     "convert",

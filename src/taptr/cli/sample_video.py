@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from taptr.cli.options import check_output_file
+from taptr.cli.common.options import check_output_file
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:

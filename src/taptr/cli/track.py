@@ -12,23 +12,28 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from taptr.cli.model_options import (
+from taptr.cli.common.model_options import (
     add_model_arguments,
     check_model_arguments,
     load_predictor,
 )
-from taptr.cli.options import (
+from taptr.cli.common.options import (
     check_at_least,
     check_output_folder,
 )
-from taptr.cli.points import (
+from taptr.cli.common.points import (
     add_query_arguments,
     build_queries,
     check_listed_points,
     listed_points,
 )
-from taptr.cli.result_settings import SETTINGS_NAME, made_with, track_settings, write_settings
-from taptr.cli.run_memory import check_run_memory
+from taptr.cli.common.result_settings import (
+    SETTINGS_NAME,
+    made_with,
+    track_settings,
+    write_settings,
+)
+from taptr.cli.common.run_memory import check_run_memory
 from taptr.io.atomic import check_result_names
 from taptr.io.frame_count import ACCEPT_TRUNCATED, check_decoded
 
@@ -103,7 +108,7 @@ def check_track_arguments(args: argparse.Namespace) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Tracks every video named and writes its outputs; prints one summary."""
-    from taptr.cli.videos import expand_videos, is_complete, my_share, result_folders
+    from taptr.cli.common.videos import expand_videos, is_complete, my_share, result_folders
     from taptr.process_group import gather_objects, join_process_group
 
     # Everything that can fail on the arguments fails here, before torch and the model load.
@@ -156,7 +161,7 @@ FINISHED = ("tracks.npz", "tracks.csv", "overlay.mp4", SETTINGS_NAME)
 
 def check_video(args: argparse.Namespace, video: Path, listed: np.ndarray | None) -> VideoInfo:
     """Reads a video's header and checks the queries and mask against it."""
-    from taptr.apps.editing import read_mask
+    from taptr.api.regions import read_mask
     from taptr.io.video import video_info
 
     info = video_info(video)

@@ -7,9 +7,13 @@ import copy
 import functools
 from typing import TYPE_CHECKING
 
-from taptr.cli.model_options import add_model_arguments, check_model_arguments, load_predictor
-from taptr.cli.options import check_at_least, check_output_folder
-from taptr.cli.points import add_query_arguments, listed_points
+from taptr.cli.common.model_options import (
+    add_model_arguments,
+    check_model_arguments,
+    load_predictor,
+)
+from taptr.cli.common.options import check_at_least, check_output_folder
+from taptr.cli.common.points import add_query_arguments, listed_points
 from taptr.io.frame_count import ACCEPT_TRUNCATED
 
 if TYPE_CHECKING:
@@ -253,7 +257,7 @@ def corpus_videos(args: argparse.Namespace) -> list[CorpusVideo]:
     Raises:
         ValueError: no videos at all, or an input without queries.
     """
-    from taptr.cli.videos import expand_videos
+    from taptr.cli.common.videos import expand_videos
     from taptr.corpus.inputs import CorpusVideo
     from taptr.corpus.manifest import is_manifest, read_manifest
 

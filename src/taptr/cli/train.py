@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from taptr.cli.options import check_output_folder
+from taptr.cli.common.options import check_output_folder
 
 if TYPE_CHECKING:
     from taptr.train.config import TrainConfig

@@ -127,7 +127,7 @@ def build_queries(
         from taptr.api.inputs import grid_queries
 
         return grid_queries(spec.grid, spec.query_frame, height, width, name=option("grid")).numpy()
-    from taptr.apps.editing import read_mask, sample_region_queries
+    from taptr.api.regions import read_mask, sample_region_queries
 
     assert spec.mask is not None  # exactly one of points, grid and mask is given
     inside = read_mask(spec.mask, name=option("mask"), size=(height, width))

@@ -121,8 +121,8 @@ def build_protocol(config: EvalConfig, device: str) -> EvalProtocol:
         from taptr.eval.baselines import LucasKanadeTracker
 
         return StandardProtocol(LucasKanadeTracker())
-    from taptr.api.predictor import autocast_type
     from taptr.eval.predictor_tracker import PredictorTracker
+    from taptr.runtime.precision import autocast_type
 
     tracker = PredictorTracker.from_pretrained(
         config.checkpoint,

@@ -19,8 +19,7 @@ exporters nor onnxruntime.
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from taptr.lazy import lazy_names
 
 _EXPORTS = {
     "export_model": "taptr.export.graphs",
@@ -44,8 +43,4 @@ _EXPORTS = {
 __all__ = sorted(_EXPORTS)
 
 
-def __getattr__(name: str) -> Any:
-    module = _EXPORTS.get(name)
-    if module is None:
-        raise AttributeError(f"module 'taptr.export' has no attribute {name!r}")
-    return getattr(importlib.import_module(module), name)
+__getattr__ = lazy_names(__name__, _EXPORTS)

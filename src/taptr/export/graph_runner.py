@@ -21,9 +21,10 @@ import torch
 from torch import Tensor
 
 from taptr.export.manifest import ExportManifest
+from taptr.model.frame_source import FrameFeatures
 from taptr.model.frame_tables import FrameTables
-from taptr.model.sliding_window import QuerySet, WindowDecoding, run_windows
-from taptr.model.taptr import FrameFeatures
+from taptr.model.sliding_window import WindowDecoding, run_windows
+from taptr.model.trajectory import QuerySet
 
 
 class Steps(Protocol):

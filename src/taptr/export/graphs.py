@@ -16,25 +16,20 @@ beyond float rounding.
 from __future__ import annotations
 
 import copy
-import logging
 import os
-import warnings
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import torch
 from torch import Tensor, nn
 
+from taptr.export.exporter import ONNX_OPSET, quiet_exporter
 from taptr.export.manifest import INPUT_NAMES, OUTPUT_NAMES, ExportFormat, ExportManifest
 from taptr.export.modules import FrameEncoder, PointInitializer, WindowDecoder, feature_shapes
+from taptr.export.v3_graphs import export_v3
 from taptr.export.v3_manifest import V3Manifest
 from taptr.model.taptr import TAPTR
 from taptr.model.v3.taptr import TAPTRv3
-
-ONNX_OPSET = 18
-"""The dynamo exporter's opset; GridSample needs 16 or later."""
 
 
 class NotExportableError(ValueError):
@@ -121,28 +116,6 @@ def example_inputs(manifest: ExportManifest, seed: int = 0) -> dict[str, tuple[T
     }
 
 
-@contextmanager
-def _quiet_exporter() -> Iterator[None]:
-    """Silences the exporters' notes, which are about their internals, not about ours.
-
-    The ONNX optimiser logs a warning per multi-output op it does not fold, the dynamo
-    exporter one per dynamic axis it renames, and TorchScript its deprecation and the
-    tracer's notes on Python values (sizes here, which stay symbolic).
-    """
-    optimizer_log = logging.getLogger("onnxscript")
-    level = optimizer_log.level
-    optimizer_log.setLevel(logging.ERROR)
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", UserWarning)
-            warnings.simplefilter("ignore", FutureWarning)
-            warnings.simplefilter("ignore", DeprecationWarning)
-            warnings.simplefilter("ignore", torch.jit.TracerWarning)
-            yield
-    finally:
-        optimizer_log.setLevel(level)
-
-
 def _dynamic_shapes(name: str) -> tuple[dict[int, Any] | None, ...]:
     frames = torch.export.Dim("frames", min=1)
     window = torch.export.Dim("window", min=1)
@@ -178,7 +151,7 @@ def export_onnx(
     directory.mkdir(parents=True, exist_ok=True)
     examples = example_inputs(manifest)
     for name, module in _wrappers(prepared, manifest).items():
-        with _quiet_exporter():
+        with quiet_exporter():
             torch.onnx.export(
                 module,
                 examples[name],
@@ -215,7 +188,7 @@ def export_torchscript(
     directory.mkdir(parents=True, exist_ok=True)
     examples = example_inputs(manifest)
     for name, module in _wrappers(prepared, manifest).items():
-        with _quiet_exporter(), torch.no_grad():
+        with quiet_exporter(), torch.no_grad():
             traced = torch.jit.trace(module, examples[name], check_trace=False)
             torch.jit.save(traced, str(manifest.graph_path(directory, name)))
     manifest.save(directory)
@@ -252,8 +225,6 @@ def export_model(
             raise NotExportableError(
                 "TAPTRv3 exports to ONNX (--format onnx), run by taptr.export.OnnxTracker"
             )
-        from taptr.export.v3_graphs import export_v3
-
         return export_v3(model, directory, input_size, history_frames)
     if history_frames is not None:
         raise ValueError("history_frames applies to TAPTRv3 models only")

@@ -30,7 +30,8 @@ from taptr.api.support import (
     grid_positions,
     grid_start_frames,
 )
-from taptr.export.graphs import ONNX_OPSET, _quiet_exporter
+from taptr.config import check_history_frames
+from taptr.export.exporter import ONNX_OPSET, quiet_exporter
 from taptr.export.modules import FrameEncoder, feature_shapes
 from taptr.export.v3_attention import packed_model
 from taptr.export.v3_manifest import GRAPHS, SupportRule, V3Manifest, graph_specs
@@ -101,8 +102,7 @@ def v3_manifest(
     if config is None:
         raise ValueError("the model has no config; build or load it with taptr")
     limit = model.history_frames if history_frames is None else history_frames
-    if limit < 0 or limit == 1:
-        raise ValueError(f"history_frames must be 0 (every frame) or at least 2, got {limit}")
+    check_history_frames(limit)
     height, width = input_size or config.input_size
     size = (int(height), int(width))
     shapes = tuple(feature_shapes(model, size))
@@ -219,7 +219,7 @@ def export_v3(
     directory.mkdir(parents=True, exist_ok=True)
     examples = example_inputs(manifest)
     for name, module in v3_wrappers(prepared, manifest).items():
-        with _quiet_exporter():
+        with quiet_exporter():
             torch.onnx.export(
                 module,
                 examples[name],

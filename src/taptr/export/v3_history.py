@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from taptr.config import check_history_frames
+
 MIN_SLOTS = 8
 """Slots of the first buffer."""
 
@@ -39,8 +41,7 @@ class RingHistory:
         Raises:
             ValueError: a limit of 1 or below 0.
         """
-        if limit < 0 or limit == 1:
-            raise ValueError(f"history_frames must be 0 (every frame) or at least 2, got {limit}")
+        check_history_frames(limit)
         self.limit = limit
         self.first = 0
         self.length = 0

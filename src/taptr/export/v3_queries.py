@@ -23,11 +23,9 @@ from typing import Any
 
 import numpy as np
 
+from taptr.config import SUPPORT_KINDS
 from taptr.export.v3_manifest import SupportRule
 from taptr.query_checks import check_num_points, check_query_values
-
-SUPPORT_SCHEMES = ("random", "local_and_grid", "grid", "none")
-"""What ``support_points`` may be (`taptr.config.SUPPORT_KINDS`)."""
 
 
 def pixel_queries(queries: Any, num_frames: int | None, height: int, width: int) -> np.ndarray:
@@ -86,7 +84,7 @@ def support_scheme(rule: SupportRule, num_queries: int, chosen: str | None = Non
     Args:
         rule: the manifest's.
         num_queries: N.
-        chosen: a scheme asked for instead of the model's (one of `SUPPORT_SCHEMES`).
+        chosen: a scheme asked for instead of the model's (one of `SUPPORT_KINDS`).
     """
     if chosen is not None:
         return chosen
@@ -122,7 +120,7 @@ def support_points(
             "taptr.api.context, which needs torch: pass support_points='grid' or 'none'"
         )
     if scheme not in ("local_and_grid", "grid"):
-        raise ValueError(f"unknown support {scheme!r}; use one of {', '.join(SUPPORT_SCHEMES)}")
+        raise ValueError(f"unknown support {scheme!r}; use one of {', '.join(SUPPORT_KINDS)}")
     parts = [local_points(rule, starts, xy)] if scheme == "local_and_grid" else []
     grid = np.array(rule.grid_positions, np.float32)
     parts.append((np.array(rule.grid_start_frames, np.int64), grid))

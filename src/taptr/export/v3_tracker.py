@@ -15,10 +15,10 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from taptr.config import SUPPORT_KINDS
 from taptr.export.v3_loop import V3Graphs, track_points
 from taptr.export.v3_manifest import V3Manifest
 from taptr.export.v3_queries import (
-    SUPPORT_SCHEMES,
     both_ways,
     grid_queries,
     normalised,
@@ -79,7 +79,7 @@ class OnnxTracker:
         history_frames: the most frames held per point (0: all; default: the manifest's).
         visibility_threshold: visible where sigmoid(logit) exceeds it (default: the
             manifest's, the model config's).
-        support_points: one of `SUPPORT_SCHEMES` instead of the model's (default: as the
+        support_points: one of `SUPPORT_KINDS` instead of the model's (default: as the
             model's config says, ``local_and_grid`` falling back to ``grid`` past 32
             queries).
         graphs: open graphs to use instead of ``directory`` (tests run eager wrappers).
@@ -107,8 +107,8 @@ class OnnxTracker:
             graphs = OnnxGraphs(directory, threads=threads, providers=providers)
         self.graphs = graphs
         self.manifest: V3Manifest = graphs.manifest
-        if support_points is not None and support_points not in SUPPORT_SCHEMES:
-            choices = ", ".join(SUPPORT_SCHEMES)
+        if support_points is not None and support_points not in SUPPORT_KINDS:
+            choices = ", ".join(SUPPORT_KINDS)
             raise ValueError(f"support_points must be one of {choices}, got {support_points!r}")
         self.support_points = support_points
         threshold = visibility_threshold or self.manifest.visibility_threshold

@@ -1,7 +1,7 @@
 """Checking exported graphs against the PyTorch model on a clip: parity and speed.
 
 `compare` tracks the same points through the same frames twice: with the PyTorch model's
-own driver (`taptr.runtime.drivers.run_tracker`, its current attention kernel) and with the
+own driver (`taptr.runtime.engines.run_tracker`, its current attention kernel) and with the
 exported graphs (TAPTR v1 and v2: the same sliding-window driver over the graphs,
 `taptr.export.graph_runner`; TAPTRv3: the torch-free frame loop, `taptr.export.v3_loop`),
 and reports the largest differences and the time each took.
@@ -24,10 +24,10 @@ from taptr.export.manifest import ExportManifest
 from taptr.export.v3_loop import track_points as track_frames
 from taptr.export.v3_manifest import V3Manifest
 from taptr.export.v3_sessions import OnnxGraphs
-from taptr.model.sliding_window import QuerySet
 from taptr.model.taptr import TAPTR, normalize_frames
+from taptr.model.trajectory import QuerySet
 from taptr.model.v3.taptr import TAPTRv3
-from taptr.runtime.drivers import run_tracker
+from taptr.runtime.engines import run_tracker
 from taptr.runtime.frames import EncodedFrames
 
 

@@ -6,14 +6,11 @@ How they run on a given machine (drivers, measured choices, frame encoding) is
 
 from taptr.model.build import build_model
 from taptr.model.execution import EXECUTIONS, Execution, get_execution
-from taptr.model.sliding_window import (
-    QuerySet,
-    TrackerState,
-    TrackOutput,
-    run_windows,
-    window_ranges,
-)
-from taptr.model.taptr import TAPTR, FrameFeatures, normalize_frames
+from taptr.model.frame_source import FrameFeatures
+from taptr.model.sliding_window import run_windows
+from taptr.model.taptr import TAPTR, normalize_frames
+from taptr.model.trajectory import QuerySet, TrackerState, TrackOutput
+from taptr.windows import window_ranges
 
 __all__ = [
     "EXECUTIONS",

@@ -9,7 +9,8 @@ and copies the state of the window's last frame to all later frames.
 All of it goes through an explicit `TrackerState`, which only holds what later windows can
 still read: the trajectory of every frame from the current window on, plus one shared
 value for all frames not yet reached. Encoded frames are requested from a `FrameSource`
-window by window, so memory is bounded by the window, not the video.
+window by window (`taptr.model.frame_source`), so memory is bounded by the window, not the
+video.
 
 The network itself is reached through a `WindowBackend`: the PyTorch `TAPTR` module (as
 `ModelBackend`, which every function here applies to a `TAPTR` it is given) or the exported
@@ -26,8 +27,9 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from taptr.geometry import inverse_sigmoid
+from taptr.model.frame_source import FrameFeatures, FrameSource
 from taptr.model.frame_tables import FrameTables
-from taptr.model.taptr import TAPTR, FrameFeatures
+from taptr.model.taptr import TAPTR
 from taptr.model.trajectory import (
     QuerySet,
     TrackerState,
@@ -40,13 +42,6 @@ from taptr.model.trajectory import (
 from taptr.model.trajectory import keep_points as keep_points  # part of the driver's API
 from taptr.model.v1.memory_efficient import first_window_content_frames
 from taptr.windows import content_padding_gap, window_ranges
-
-FrameSource = Callable[[int, int], FrameFeatures]
-"""Returns the features of frames first..last (inclusive), memory (B, W_t, S, C).
-
-This is how frames reach the driver: the source encodes them with the backend's encoder
-(`taptr.runtime.frames.EncodedFrames`, `taptr.export.graph_runner.GraphFrames`) or slices features
-encoded beforehand."""
 
 
 class WindowDecoding(NamedTuple):

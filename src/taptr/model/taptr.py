@@ -10,8 +10,6 @@ mode anywhere in the model: every method here hands it down as an argument.
 
 from __future__ import annotations
 
-from typing import NamedTuple
-
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
@@ -26,24 +24,13 @@ from taptr.model.execution import (
     Execution,
     get_execution,
 )
+from taptr.model.frame_source import FrameFeatures
 from taptr.model.frame_tables import FrameTables
 from taptr.model.layers import MLP
 from taptr.model.query_init import QueryInitializer
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
-
-
-class FrameFeatures(NamedTuple):
-    """Encoder memory of some frames.
-
-    Attributes:
-        memory: (B, T, S, C) tokens of all levels, flattened row-major per level.
-        spatial_shapes: (H_l, W_l) of the L levels.
-    """
-
-    memory: Tensor
-    spatial_shapes: list[tuple[int, int]]
 
 
 def normalize_frames(frames: Tensor) -> Tensor:

@@ -170,6 +170,11 @@ class TrackOutput(NamedTuple):
     layer_updated_positions: Tensor | None
 
 
+def first_points(output: TrackOutput, count: int) -> TrackOutput:
+    """``output`` of its first ``count`` points (views of the same tensors)."""
+    return TrackOutput(*(None if part is None else part[..., :count, :] for part in output))
+
+
 def keep_points(state: TrackerState, keep: Tensor) -> None:
     """Drops the points not selected by the (N,) bool mask from a running state."""
     state.queries = QuerySet(*(q[:, keep] for q in state.queries))

@@ -12,9 +12,9 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from taptr.model.sliding_window import QuerySet
 from taptr.model.taptr import TAPTR
-from taptr.runtime.drivers import run_tracker
+from taptr.model.trajectory import QuerySet
+from taptr.runtime.engines import run_tracker
 from taptr.runtime.frames import EncodedFrames
 
 

@@ -1,10 +1,9 @@
 """Denormal floats flushed to zero while a model runs on the CPU.
 
 Products of small weights and small activations can fall below float32's normal range
-(1.2e-38); x86 CPUs then take a microcode path tens of times slower per operation. One
-benchmark harness tracking with the official-format TAPTRv3 weights ran 2.38 s a frame
-and 1.41 with denormals flushed, outputs identical (reported in issue 38, 2026-12-05).
-Values that small carry nothing a tracker reads, so inference on the CPU flushes them.
+(1.2e-38); x86 CPUs then take a microcode path tens of times slower per operation (what
+that cost a run with the official-format TAPTRv3 weights: docs/BENCHMARKS_LOG.md). Values
+that small carry nothing a tracker reads, so inference on the CPU flushes them.
 PyTorch has no getter for the setting: it is switched off again on leaving, PyTorch's
 default.
 """

@@ -3,10 +3,8 @@
 Every frame is encoded independently (backbone, input projections, encoder), so the number
 of frames per call changes speed and memory only. One frame per call keeps a large frame's
 intermediates in a CPU's caches; more frames per call pay where the call's fixed cost
-dominates. Measured in the `fast` execution (docs/BENCHMARKS.md): on two threads of an
-AMD EPYC, 128 × 128 frames track in 0.107 s/frame at one frame per call and 0.092 at four
-(eight: 0.102); on an H100, 512 × 512 TAPTRv2 at 800 points runs at 44 frames/s one frame
-per call and 58 with all 24 frames in one (65 and 104 under bfloat16 autocast).
+dominates: small frames on a CPU, and GPUs, where one frame per call is launch-bound
+(measured in docs/BENCHMARKS.md and its log).
 
 The candidates are the powers of two whose frames together stay within a device's pixel
 budget (`PIXELS_PER_CALL`); where more than one fits, each is timed on random frames of

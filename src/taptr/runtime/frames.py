@@ -1,4 +1,10 @@
-"""Frame sources for the window driver: encode each frame once, keep only what is needed."""
+"""The frame caches a driver reads: each frame encoded once, only what is needed kept.
+
+`EncodedFrames` encodes a video's frames on demand (a frame the first time a window or a
+frame step asks for it, several per encoder call where that pays); `StreamFrames` holds a
+stream's arriving frames until it asks; `PrecomputedFrames` serves features encoded
+beforehand. All three are a `taptr.model.frame_source.FrameSource`.
+"""
 
 from __future__ import annotations
 
@@ -7,7 +13,8 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from taptr.model.taptr import TAPTR, FrameFeatures
+from taptr.model.frame_source import FrameFeatures
+from taptr.model.taptr import TAPTR
 
 FrameLoader = Callable[[int, int], Tensor]
 """Returns frames first..last (inclusive), (B, W_t, 3, H, W) ImageNet-normalised."""
@@ -103,3 +110,44 @@ class PrecomputedFrames:
         return FrameFeatures(
             self.features.memory[:, first : last + 1], self.features.spatial_shapes
         )
+
+
+class StreamFrames:
+    """Frames of a stream still needed by the units to decode.
+
+    A stream cannot be read on demand, so arriving frames wait here, prepared for the model,
+    until a unit asks for them; an `EncodedFrames` then encodes them exactly as for a
+    whole video.
+
+    Shape:
+        ``add(first, frames)``: frames (1, F, 3, H_m, W_m) prepared model input;
+        ``self(first, last)`` → memory (1, last − first + 1, S, C).
+    """
+
+    def __init__(self, model: TAPTR, frames_per_call: int = 1) -> None:
+        self.waiting: dict[int, Tensor] = {}  # frame index → (1, 1, 3, H_m, W_m), not encoded
+        # no length: `__call__` lets it read ahead through the frames that have arrived
+        self.encoded = EncodedFrames(model, self._load, frames_per_call)
+
+    def add(self, first: int, frames: Tensor) -> None:
+        """Holds prepared frames (1, F, 3, H_m, W_m), frames first..first + F − 1."""
+        for offset in range(frames.shape[1]):
+            self.waiting[first + offset] = frames[:, offset : offset + 1]
+
+    def __call__(self, first: int, last: int) -> FrameFeatures:
+        """Memory of frames first..last (inclusive); earlier frames are dropped."""
+        self.encoded.num_frames = max(last, *self.waiting) + 1 if self.waiting else last + 1
+        return self.encoded(first, last)
+
+    def release(self, before: int) -> None:
+        """Drops waiting frames before ``before`` (windows skipped for lack of points)."""
+        for frame in [f for f in self.waiting if f < before]:
+            del self.waiting[frame]
+
+    def __len__(self) -> int:
+        """Frames held: waiting ones, and the encoded ones `EncodedFrames` keeps."""
+        return len(self.waiting) + len(self.encoded.cache)
+
+    def _load(self, first: int, last: int) -> Tensor:
+        """Prepared frames first..last, (1, last − first + 1, 3, H_m, W_m), no longer held."""
+        return torch.cat([self.waiting.pop(f) for f in range(first, last + 1)], dim=1)

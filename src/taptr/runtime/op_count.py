@@ -22,8 +22,8 @@ import torch
 from torch import Tensor
 from torch.utils._python_dispatch import TorchDispatchMode
 
-from taptr.model.sliding_window import QuerySet
 from taptr.model.taptr import TAPTR, normalize_frames
+from taptr.model.trajectory import QuerySet
 
 NO_LAUNCH = frozenset(
     {"empty", "empty_like", "new_empty", "empty_strided", "new_empty_strided", "detach"}
@@ -109,7 +109,7 @@ def count_frame_ops(
             one window and a stride more).
         seed: seed of the frames and points.
     """
-    from taptr.runtime.drivers import run_tracker
+    from taptr.runtime.engines import run_tracker
     from taptr.runtime.frames import EncodedFrames
 
     device = next(model.parameters()).device

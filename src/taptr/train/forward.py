@@ -11,9 +11,9 @@ import torch
 from torch import Tensor, nn
 
 from taptr.data.sampling import ClipBatch
-from taptr.model.sliding_window import QuerySet, TrackOutput
 from taptr.model.taptr import TAPTR, normalize_frames
-from taptr.runtime.drivers import run_tracker
+from taptr.model.trajectory import QuerySet, TrackOutput
+from taptr.runtime.engines import run_tracker
 from taptr.runtime.frames import PrecomputedFrames
 from taptr.train.losses import Targets
 

@@ -32,7 +32,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from taptr.model.sliding_window import TrackOutput
+from taptr.model.trajectory import TrackOutput
 
 
 @dataclass(frozen=True)

@@ -23,9 +23,10 @@ from pathlib import Path
 import numpy as np
 
 from taptr.api.predictor import Predictor
+from taptr.api.regions import sample_region_queries
 from taptr.apps.demo.settings import Limits
 from taptr.apps.demo.uploads import DemoError, LoadedVideo, read_paste_image
-from taptr.apps.editing import overlay_region, sample_region_queries
+from taptr.apps.editing import overlay_region
 from taptr.io.tracks import save_tracks_csv, save_tracks_npz
 from taptr.io.video import write_video
 from taptr.viz.draw import draw_tracks

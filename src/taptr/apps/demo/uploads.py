@@ -21,8 +21,8 @@ import cv2
 import numpy as np
 
 from taptr.api.inputs import grid_queries
+from taptr.api.regions import sample_region_queries
 from taptr.apps.demo.settings import Limits
-from taptr.apps.editing import sample_region_queries
 from taptr.data.sample_video import make_sample_clip
 from taptr.io.image_guard import read_image_channels
 from taptr.io.video import read_video, video_info, write_video

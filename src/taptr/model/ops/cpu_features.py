@@ -1,8 +1,8 @@
 """What this CPU can do, as taptr sees it, and how to make it see less (``TAPTR_CPU``).
 
 Some of taptr's choices depend on the CPU's instructions: oneDNN's inner products serve x86
-CPUs with AVX2 or AVX-512 (`taptr.model.ops.dense.onednn_available`), and bfloat16 products
-need AVX512-BF16 or AMX (`taptr.model.ops.dense.native_bfloat16`). Each branch must work on
+CPUs with AVX2 or AVX-512 (`onednn_available`), and bfloat16 products
+need AVX512-BF16 or AMX (`native_bfloat16`). Each branch must work on
 every CPU, but a host only has one set of instructions, so ``TAPTR_CPU`` makes taptr take
 the branches of a lesser CPU: taptr then behaves as on a CPU whose best instructions are
 the level named, and every instruction above it is treated as missing. It only takes away:
@@ -29,6 +29,10 @@ VARIABLE = "TAPTR_CPU"
 
 LEVELS = ("default", "avx2", "avx512", "avx512_bf16", "amx")
 """``TAPTR_CPU``'s values, from the least capable CPU to the most."""
+
+X86_CAPABILITIES = ("AVX2", "AVX512")
+"""``torch.backends.cpu.get_cpu_capability()`` values of the CPUs the oneDNN path serves
+(lowered by ``TAPTR_CPU``)."""
 
 _CAPABILITY_LEVEL = {"DEFAULT": "default", "AVX2": "avx2", "AVX512": "avx512"}
 """``torch.backends.cpu.get_cpu_capability()`` → level (other values: no x86 level)."""
@@ -79,6 +83,28 @@ def bfloat16_hardware() -> dict[str, bool]:
     return {name: has and _allowed(name) for name, has in found.items()}
 
 
+@functools.cache
+def onednn_available() -> bool:
+    """Whether this PyTorch build and CPU have oneDNN's inner product (fixed per process)."""
+    if not torch.backends.mkldnn.is_available():
+        return False
+    if cpu_capability() not in X86_CAPABILITIES:
+        return False
+    return hasattr(torch.ops.mkldnn, "_linear_pointwise")
+
+
+@functools.cache
+def native_bfloat16() -> bool:
+    """Whether this CPU multiplies bfloat16 natively (AVX512-BF16 or AMX) through oneDNN.
+
+    False where ``TAPTR_CPU`` takes both away.
+    """
+    if not onednn_available():
+        return False
+    has = any(bfloat16_hardware().values())
+    return has and bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+
+
 def simulated() -> str | None:
     """The level ``TAPTR_CPU`` names when it takes anything away, for records; else None."""
     return None if ceiling() == LEVELS[-1] else ceiling()
@@ -86,8 +112,6 @@ def simulated() -> str | None:
 
 def refresh() -> None:
     """Reads ``TAPTR_CPU`` again, and forgets every answer that depended on it."""
-    from taptr.model.ops import dense
-
     ceiling.cache_clear()
-    dense.onednn_available.cache_clear()
-    dense.native_bfloat16.cache_clear()
+    onednn_available.cache_clear()
+    native_bfloat16.cache_clear()

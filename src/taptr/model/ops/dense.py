@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
-import functools
 import math
 import weakref
 from collections.abc import Iterator
@@ -49,11 +48,9 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 from torch.utils.flop_counter import register_flop_formula
 
-from taptr.model.ops.cpu_features import bfloat16_hardware, cpu_capability
-
-X86_CAPABILITIES = ("AVX2", "AVX512")
-"""``torch.backends.cpu.get_cpu_capability()`` values of the CPUs the oneDNN path serves
-(lowered by ``TAPTR_CPU``, `taptr.model.ops.cpu_features`)."""
+# re-exported: where the products run is this module's question to callers
+from taptr.model.ops.cpu_features import native_bfloat16 as native_bfloat16
+from taptr.model.ops.cpu_features import onednn_available as onednn_available
 
 
 def _inner_product_flops(x_shape: torch.Size, w_shape: torch.Size, *args, **kwargs) -> int:
@@ -65,28 +62,6 @@ def _inner_product_flops(x_shape: torch.Size, w_shape: torch.Size, *args, **kwar
 if hasattr(torch.ops.mkldnn, "_linear_pointwise"):
     # without a formula, FlopCounterMode counts these products as zero
     register_flop_formula(torch.ops.mkldnn._linear_pointwise)(_inner_product_flops)
-
-
-@functools.cache
-def onednn_available() -> bool:
-    """Whether this PyTorch build and CPU have oneDNN's inner product (fixed per process)."""
-    if not torch.backends.mkldnn.is_available():
-        return False
-    if cpu_capability() not in X86_CAPABILITIES:
-        return False
-    return hasattr(torch.ops.mkldnn, "_linear_pointwise")
-
-
-@functools.cache
-def native_bfloat16() -> bool:
-    """Whether this CPU multiplies bfloat16 natively (AVX512-BF16 or AMX) through oneDNN.
-
-    False where ``TAPTR_CPU`` takes both away (`taptr.model.ops.cpu_features`).
-    """
-    if not onednn_available():
-        return False
-    has = any(bfloat16_hardware().values())
-    return has and bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
 
 
 _PRODUCT_TYPE: contextvars.ContextVar[torch.dtype] = contextvars.ContextVar(

@@ -18,7 +18,7 @@ the official outputs hold on frames the model never writes.
 
 All of it goes through an explicit `FrameState`; `decode_frame` returns each frame's
 outputs as soon as it is decoded (one frame of latency), and `run_frames` stacks them for
-a whole video. Encoded frames come from a `taptr.model.sliding_window.FrameSource` asked
+a whole video. Encoded frames come from a `taptr.model.frame_source.FrameSource` asked
 for one frame at a time.
 """
 
@@ -33,9 +33,8 @@ from torch import Tensor, nn
 
 from taptr.geometry import inverse_sigmoid
 from taptr.model.decoder import DecoderOutput
+from taptr.model.frame_source import FrameFeatures, FrameSource
 from taptr.model.ops.constants import kept
-from taptr.model.sliding_window import FrameSource
-from taptr.model.taptr import FrameFeatures
 from taptr.model.trajectory import QuerySet, TrackOutput, distinct_starts, joined_starts
 from taptr.model.v3.decoder import HeldFrames
 from taptr.model.v3.history import History, frame_weights
@@ -59,14 +58,46 @@ class FrameOutput(NamedTuple):
 
 
 class DecoderStep(Protocol):
-    """Runs ``model.decoder`` on a frame, called with its arguments, eagerly or captured."""
+    """Runs ``model.decoder`` on a frame, called with its arguments.
 
-    captured: bool
-    """Whether the next call replays a captured step (which needs `FrameState.static_shapes`)."""
+    The module as it is (`ModuleStep`), or a step captured for replay
+    (`taptr.runtime.step_capture`).
+    """
+
+    @property
+    def static_shapes(self) -> bool:
+        """Whether the next call needs the decoder's shapes to stay fixed from frame to frame.
+
+        So does a compiled or captured step; the history is then read as its whole buffer
+        (`held_frames`).
+        """
+        ...
 
     def __call__(self, *args: Any) -> DecoderOutput:
         """The decoder's outputs on one frame (the arguments of ``V3Decoder.forward``)."""
         ...
+
+
+@dataclass(frozen=True)
+class ModuleStep:
+    """The model's own decoder as the step of every frame.
+
+    Attributes:
+        decoder: ``model.decoder``, eager or compiled in place.
+        asked_static: read the whole history buffer even when the decoder is eager.
+    """
+
+    decoder: nn.Module
+    asked_static: bool = False
+
+    @property
+    def static_shapes(self) -> bool:
+        """As asked, and always for a compiled decoder (`compiled`)."""
+        return self.asked_static or compiled(self.decoder)
+
+    def __call__(self, *args: Any) -> DecoderOutput:
+        """The decoder's outputs on one frame (the arguments of ``V3Decoder.forward``)."""
+        return self.decoder(*args)
 
 
 @dataclass
@@ -86,12 +117,9 @@ class FrameState:
             frames start points, whether any point is past its start and whether all
             are tracked are decided without asking the device (a step that waits for
             nothing can be captured and replayed).
+        step: what runs the decoder on a frame, and whether its shapes must stay the
+            same from frame to frame (`DecoderStep.static_shapes`).
         next_frame: the frame to decode next.
-        static_shapes: the decoder reads the history's whole buffer (`held_frames`), so
-            that its shapes stay the same from frame to frame (compiled or captured steps);
-            also in effect on the frames a ``step`` replays a capture.
-        step: what runs the decoder on a frame (a step captured for replay,
-            `taptr.runtime.step_capture`); None: ``model.decoder``.
     """
 
     queries: QuerySet
@@ -101,14 +129,17 @@ class FrameState:
     positions: list[Tensor]
     updated_positions: list[Tensor]
     history: History
+    step: DecoderStep
     start_frames: tuple[int, ...] = ()
     next_frame: int = 0
-    static_shapes: bool = False
-    step: DecoderStep | None = None
 
 
 def compiled(module: nn.Module) -> bool:
-    """Whether ``module`` runs through ``torch.compile`` (``module.compile()`` or wrapped)."""
+    """Whether ``module`` runs through ``torch.compile`` (``module.compile()`` or wrapped).
+
+    Such a decoder needs static shapes (`DecoderStep.static_shapes`): it would otherwise
+    be traced again for every history length.
+    """
     # torch.compile(module) wraps it (the original as ``_orig_mod``); module.compile()
     # sets ``_compiled_call_impl``; looking for either imports nothing of dynamo
     wrapped = getattr(module, "_orig_mod", None) is not None
@@ -151,11 +182,19 @@ def start_state(
         queries: the points, in model units.
         dtype: floating dtype of positions and content.
         history_frames: the most frames held per point (0: all); default the model's.
-        static_shapes: `FrameState.static_shapes`; always on when the decoder is
-            compiled (``nn.Module.compile``, `taptr.export.compile_model`), which would
-            otherwise trace it again for every history length.
-        step: `FrameState.step`.
+        static_shapes: without a ``step``, read the history's whole buffer on every frame
+            (`ModuleStep`); always so when the decoder is compiled (``nn.Module.compile``,
+            `taptr.export.compile_model`), which would otherwise trace it again for every
+            history length.
+        step: `FrameState.step`; None: the model's decoder (`ModuleStep`).
+
+    Raises:
+        ValueError: ``static_shapes`` beside a ``step``, which decides its own.
     """
+    if step is None:
+        step = ModuleStep(model.decoder, static_shapes)
+    elif static_shapes:
+        raise ValueError("a decoder step decides its own static shapes")
     batch, points = queries.start_frames.shape
     channels = model.content_channels
     like = queries.positions.new_zeros(1, dtype=dtype)
@@ -172,9 +211,8 @@ def start_state(
         positions=[logits] * model.num_layers,
         updated_positions=[logits] * model.num_layers,
         history=history,
-        start_frames=distinct_starts(queries),
-        static_shapes=static_shapes or compiled(model.decoder),
         step=step,
+        start_frames=distinct_starts(queries),
     )
 
 
@@ -253,17 +291,18 @@ def decode_frame(model: TAPTRv3, state: FrameState, frames: FrameSource) -> Fram
         features = frames(frame, frame)
     memory, spatial_shapes = features
     held = held_frames(model, state, frame)
-    decoded = model.decode_frame(
-        memory[:, 0],
-        spatial_shapes,
-        state.initial_content[:, None],
-        state.positions[-1][:, None],
-        (starts <= frame)[:, None],
-        update[:, None],
-        held,
-        state.context,
-        all_tracked=state.start_frames[-1] <= frame,
-        decoder=state.step,
+    decoded = state.step(
+        *model.decoder_inputs(
+            memory[:, 0],
+            spatial_shapes,
+            state.initial_content[:, None],
+            state.positions[-1][:, None],
+            (starts <= frame)[:, None],
+            update[:, None],
+            held,
+            state.context,
+            all_tracked=state.start_frames[-1] <= frame,
+        )
     )
     step = update[..., None]
     state.positions = [
@@ -285,14 +324,14 @@ def decode_frame(model: TAPTRv3, state: FrameState, frames: FrameSource) -> Fram
 def held_frames(model: TAPTRv3, state: FrameState, frame: int) -> HeldFrames:
     """What the long-temporal attention reads on ``frame``: the held frames, or the buffer.
 
-    With ``state.static_shapes`` every slot of the history's buffer is read, those that
-    hold no frame left out of the softmax (`HeldFrames.outside`) and weighted zero: the
-    shapes then change only when the buffer grows (by doubling), so a compiled or
-    captured step is reused from frame to frame. The result is the same up to float
-    rounding.
+    With static shapes (`DecoderStep.static_shapes`) every slot of the history's buffer is
+    read, those that hold no frame left out of the softmax (`HeldFrames.outside`) and
+    weighted zero: the shapes then change only when the buffer grows (by doubling), so a
+    compiled or captured step is reused from frame to frame. The result is the same up to
+    float rounding.
     """
     history, starts = state.history, state.queries.start_frames
-    if not (state.static_shapes or (state.step is not None and state.step.captured)):
+    if not state.step.static_shapes:
         frames = history.frames()  # (H,)
         weights = frame_weights(frames, starts, history.visibility_logits, model.visibility_weights)
         return HeldFrames(history.content, frame - frames, weights)
@@ -381,7 +420,7 @@ def run_frames(
         dtype: floating dtype of the positions and content.
         on_frame: called after each frame (progress reporting).
         history_frames: the most frames held per point (0: all); default the model's.
-        static_shapes: `FrameState.static_shapes`.
+        static_shapes: `start_state`'s.
         step: `FrameState.step`.
     """
     state = start_state(model, queries, dtype, history_frames, static_shapes, step)

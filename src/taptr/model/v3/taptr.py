@@ -7,7 +7,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from typing import Any
 
 from torch import Tensor
 
@@ -100,9 +100,28 @@ class TAPTRv3(TAPTR):
         held: HeldFrames,
         context: Tensor | None,
         all_tracked: bool | None = None,
-        decoder: Callable[..., DecoderOutput] | None = None,
     ) -> DecoderOutput:
-        """Runs the decoder on one frame.
+        """Runs the decoder on one frame (arguments as in `decoder_inputs`)."""
+        inputs = self.decoder_inputs(
+            memory, spatial_shapes, content, positions, tracking, update, held, context, all_tracked
+        )
+        return self.decoder(*inputs)
+
+    def decoder_inputs(
+        self,
+        memory: Tensor,
+        spatial_shapes: list[tuple[int, int]],
+        content: Tensor,
+        positions: Tensor,
+        tracking: Tensor,
+        update: Tensor,
+        held: HeldFrames,
+        context: Tensor | None,
+        all_tracked: bool | None = None,
+    ) -> tuple[Any, ...]:
+        """The decoder's arguments on one frame, in ``V3Decoder.forward``'s order.
+
+        What a decoder step (`taptr.model.v3.per_frame.DecoderStep`) is called with.
 
         Args:
             memory: (B, S, C) encoder memory of the frame.
@@ -115,10 +134,9 @@ class TAPTRv3(TAPTR):
             context: (B, N, K, K, C) initial contexts, or None.
             all_tracked: every point is tracked (known without asking the device), or
                 None to read ``tracking`` (`taptr.model.v3.decoder.V3Decoder`).
-            decoder: what runs ``self.decoder`` (a captured step); None: the module.
         """
         assert isinstance(self.decoder, V3Decoder)
-        return (decoder or self.decoder)(
+        return (
             content,
             positions,
             memory,

@@ -3,7 +3,7 @@
 ``taptr track a.mp4 clips/ "more/*.webm" --out results/`` tracks every video named, found in
 a folder, or matched by a glob; each gets its own result folder ``results/<name>/``. A folder
 that already holds a complete result (all of its files, written together at the end of a
-run) made with the same settings (`taptr.cli.result_settings`) is skipped, so a crashed run
+run) made with the same settings (`taptr.cli.common.result_settings`) is skipped, so a crashed run
 resumes where it stopped. Under ``torchrun`` each process takes every ``WORLD_SIZE``-th
 video, and the first process prints one summary.
 """

@@ -7,7 +7,7 @@ import os
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from taptr.cli.options import (
+from taptr.cli.common.options import (
     MAX_INPUT_SIDE,
     MIN_INPUT_SIDE,
     add_device_argument,
@@ -16,7 +16,7 @@ from taptr.cli.options import (
     check_device,
     check_input_size,
 )
-from taptr.config import SUPPORT_KINDS
+from taptr.config import SUPPORT_KINDS, check_history_frames
 from taptr.types import AUTOCAST_TYPES, CAPTURE_CHOICES
 
 if TYPE_CHECKING:
@@ -130,9 +130,7 @@ def check_model_arguments(args: argparse.Namespace) -> None:
     if args.context_points is not None:
         check_at_least(args.context_points, 0, "--context-points")
     if args.history_frames is not None:
-        check_at_least(args.history_frames, 0, "--history-frames")
-        if args.history_frames == 1:
-            raise ValueError("--history-frames must be 0 (the whole video) or at least 2")
+        check_history_frames(args.history_frames, "--history-frames")
     check_at_least(args.max_frames, 1, "--max-frames")
     check_checkpoint_name(args.checkpoint)
 
@@ -154,7 +152,8 @@ def check_checkpoint_name(checkpoint: str | None, flag: str = "--checkpoint") ->
 def load_predictor(args: argparse.Namespace) -> Predictor:
     """The predictor the model arguments describe (``--device`` is checked first)."""
     check_device(args.device)
-    from taptr.api.predictor import Predictor, autocast_type
+    from taptr.api.predictor import Predictor
+    from taptr.runtime.precision import autocast_type
 
     size = tuple(args.input_size) if args.input_size else None
     predictor = Predictor.from_pretrained(
