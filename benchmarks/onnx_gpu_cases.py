@@ -28,7 +28,8 @@ import numpy as np
 import onnxruntime as ort
 import torch
 
-from taptr.export.exporter import ONNX_OPSET, quiet_exporter
+from taptr.export.exporter import export_onnx_graph
+from taptr.export.sessions import session_options
 from taptr.export.v3_graphs import (
     dynamic_shapes,
     example_inputs,
@@ -38,7 +39,6 @@ from taptr.export.v3_graphs import (
     v3_wrappers,
 )
 from taptr.export.v3_manifest import GRAPHS, V3Manifest
-from taptr.export.v3_sessions import session_options
 
 SLOTS = 32
 """History slots of the timed step (24 frames held)."""
@@ -53,18 +53,9 @@ def export_half(model: torch.nn.Module, folder: Path) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     for name, module in v3_wrappers(half, manifest).items():
         inputs = tuple(x.half() if x.is_floating_point() else x for x in examples[name])
-        with quiet_exporter():
-            torch.onnx.export(
-                module,
-                inputs,
-                str(manifest.graph_path(folder, name)),
-                input_names=manifest.input_names(name),
-                output_names=manifest.output_names(name),
-                dynamic_shapes=dynamic_shapes(manifest, name),
-                opset_version=ONNX_OPSET,
-                dynamo=True,
-                external_data=False,
-            )
+        names = (manifest.input_names(name), manifest.output_names(name))
+        path = manifest.graph_path(folder, name)
+        export_onnx_graph(module, inputs, path, names, dynamic_shapes(manifest, name))
     manifest.save(folder)
     return folder
 

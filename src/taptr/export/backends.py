@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from taptr.export.manifest import GRAPHS, INPUT_NAMES, ExportManifest
+from taptr.export.sessions import onnxruntime_module, session_options
 
 
 class _GraphSteps:
@@ -63,17 +64,9 @@ class OnnxSteps(_GraphSteps):
         threads: int | None = None,
         providers: list[str] | None = None,
     ) -> None:
-        try:
-            import onnxruntime
-        except ImportError:
-            raise ModuleNotFoundError(
-                "running ONNX graphs needs onnxruntime: pip install 'taptr[export]'"
-            ) from None
+        onnxruntime = onnxruntime_module()
         self.manifest = self._load_manifest(directory)
-        options = onnxruntime.SessionOptions()
-        if threads is not None:
-            options.intra_op_num_threads = threads
-            options.inter_op_num_threads = 1
+        options = session_options(threads)
         self.sessions = {
             name: onnxruntime.InferenceSession(
                 str(self.manifest.graph_path(directory, name)),

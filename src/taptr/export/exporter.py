@@ -7,9 +7,11 @@ Both families' graphs (`taptr.export.graphs` for TAPTR v1 and TAPTRv2,
 from __future__ import annotations
 
 import logging
+import os
 import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
+from typing import Any
 
 import torch
 
@@ -37,3 +39,46 @@ def quiet_exporter() -> Iterator[None]:
             yield
     finally:
         optimizer_log.setLevel(level)
+
+
+def require_onnx_exporter() -> None:
+    """Raises ModuleNotFoundError, naming the extra, where onnx or onnxscript is missing."""
+    try:
+        import onnx  # noqa: F401  (the dynamo exporter needs both)
+        import onnxscript  # noqa: F401
+    except ImportError:
+        raise ModuleNotFoundError(
+            "ONNX export needs onnx and onnxscript: pip install 'taptr[export]'"
+        ) from None
+
+
+def export_onnx_graph(
+    module: torch.nn.Module,
+    inputs: tuple[torch.Tensor, ...],
+    path: str | os.PathLike[str],
+    names: tuple[list[str], list[str]],
+    dynamic_shapes: Any,
+) -> None:
+    """Writes one graph through the dynamo exporter, at `ONNX_OPSET`, weights inside.
+
+    Args:
+        module: the graph's module (its forward takes ``inputs``).
+        inputs: example inputs.
+        path: the ``.onnx`` file.
+        names: (input names, output names) of the graph.
+        dynamic_shapes: per input, its dynamic dimensions (``torch.export``'s form).
+    """
+    input_names, output_names = names
+    with quiet_exporter():
+        torch.onnx.export(
+            module,
+            inputs,
+            str(path),
+            input_names=input_names,
+            output_names=output_names,
+            dynamic_shapes=dynamic_shapes,
+            opset_version=ONNX_OPSET,
+            dynamo=True,
+            external_data=False,
+            verbose=False,
+        )

@@ -23,7 +23,12 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from taptr.export.exporter import ONNX_OPSET, quiet_exporter
+from taptr.export.exporter import (
+    ONNX_OPSET,
+    export_onnx_graph,
+    quiet_exporter,
+    require_onnx_exporter,
+)
 from taptr.export.manifest import INPUT_NAMES, OUTPUT_NAMES, ExportFormat, ExportManifest
 from taptr.export.modules import FrameEncoder, PointInitializer, WindowDecoder, feature_shapes
 from taptr.export.v3_graphs import export_v3
@@ -138,32 +143,16 @@ def export_onnx(
         directory: output folder, created if needed.
         input_size: (H, W) of the frames the graphs take (default: the model config's).
     """
-    try:
-        import onnx  # noqa: F401  (the exporter needs both)
-        import onnxscript  # noqa: F401
-    except ImportError:
-        raise ModuleNotFoundError(
-            "ONNX export needs onnx and onnxscript: pip install 'taptr[export]'"
-        ) from None
+    require_onnx_exporter()
     prepared = prepare_for_export(model)
     manifest = _manifest(prepared, "onnx", ONNX_OPSET, input_size)
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     examples = example_inputs(manifest)
     for name, module in _wrappers(prepared, manifest).items():
-        with quiet_exporter():
-            torch.onnx.export(
-                module,
-                examples[name],
-                str(manifest.graph_path(directory, name)),
-                input_names=list(INPUT_NAMES[name]),
-                output_names=list(OUTPUT_NAMES[name]),
-                dynamic_shapes=_dynamic_shapes(name),
-                opset_version=ONNX_OPSET,
-                dynamo=True,
-                external_data=False,
-                verbose=False,
-            )
+        names = (list(INPUT_NAMES[name]), list(OUTPUT_NAMES[name]))
+        path = manifest.graph_path(directory, name)
+        export_onnx_graph(module, examples[name], path, names, _dynamic_shapes(name))
     manifest.save(directory)
     return manifest
 

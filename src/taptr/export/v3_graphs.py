@@ -31,7 +31,7 @@ from taptr.api.support import (
     grid_start_frames,
 )
 from taptr.config import check_history_frames
-from taptr.export.exporter import ONNX_OPSET, quiet_exporter
+from taptr.export.exporter import ONNX_OPSET, export_onnx_graph, require_onnx_exporter
 from taptr.export.modules import FrameEncoder, feature_shapes
 from taptr.export.v3_attention import packed_model
 from taptr.export.v3_manifest import GRAPHS, SupportRule, V3Manifest, graph_specs
@@ -206,32 +206,16 @@ def export_v3(
         ModuleNotFoundError: onnx or onnxscript is missing.
         ValueError: see `v3_manifest`.
     """
-    try:
-        import onnx  # noqa: F401  (the exporter needs both)
-        import onnxscript  # noqa: F401
-    except ImportError:
-        raise ModuleNotFoundError(
-            "ONNX export needs onnx and onnxscript: pip install 'taptr[export]'"
-        ) from None
+    require_onnx_exporter()
     prepared = prepare_v3(model)
     manifest = v3_manifest(prepared, input_size, history_frames)
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     examples = example_inputs(manifest)
     for name, module in v3_wrappers(prepared, manifest).items():
-        with quiet_exporter():
-            torch.onnx.export(
-                module,
-                examples[name],
-                str(manifest.graph_path(directory, name)),
-                input_names=manifest.input_names(name),
-                output_names=manifest.output_names(name),
-                dynamic_shapes=dynamic_shapes(manifest, name),
-                opset_version=ONNX_OPSET,
-                dynamo=True,
-                external_data=False,
-                verbose=False,
-            )
+        names = (manifest.input_names(name), manifest.output_names(name))
+        path = manifest.graph_path(directory, name)
+        export_onnx_graph(module, examples[name], path, names, dynamic_shapes(manifest, name))
     manifest.save(directory)
     return manifest
 

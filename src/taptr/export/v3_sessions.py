@@ -14,24 +14,8 @@ from typing import Any
 
 import numpy as np
 
+from taptr.export.sessions import onnxruntime_module, session_options
 from taptr.export.v3_manifest import GRAPHS, V3Manifest
-
-
-def session_options(threads: int | None) -> Any:
-    """Onnxruntime's options: every graph optimisation, ``threads`` intra-op threads.
-
-    Args:
-        threads: intra-op threads (None: onnxruntime's default, one per core).
-    """
-    import onnxruntime
-
-    options = onnxruntime.SessionOptions()
-    options.graph_optimization_level = onnxruntime.GraphOptimizationLevel.ORT_ENABLE_ALL
-    options.add_session_config_entry("session.set_denormal_as_zero", "1")
-    if threads is not None:
-        options.intra_op_num_threads = threads
-        options.inter_op_num_threads = 1
-    return options
 
 
 class OnnxGraphs:
@@ -55,12 +39,7 @@ class OnnxGraphs:
         threads: int | None = None,
         providers: list[Any] | None = None,
     ) -> None:
-        try:
-            import onnxruntime
-        except ImportError:
-            raise ModuleNotFoundError(
-                "running ONNX graphs needs onnxruntime: pip install 'taptr[export]'"
-            ) from None
+        onnxruntime = onnxruntime_module()
         self.manifest = V3Manifest.load(directory)
         options = session_options(threads)
         self.sessions = {
