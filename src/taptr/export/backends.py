@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from taptr.export.manifest import GRAPHS, INPUT_NAMES, ExportManifest
-from taptr.export.sessions import onnxruntime_module, session_options
+from taptr.export.sessions import onnxruntime_module, open_sessions
 
 
 class _GraphSteps:
@@ -64,17 +64,10 @@ class OnnxSteps(_GraphSteps):
         threads: int | None = None,
         providers: list[str] | None = None,
     ) -> None:
-        onnxruntime = onnxruntime_module()
+        onnxruntime_module()  # its message before the manifest's
         self.manifest = self._load_manifest(directory)
-        options = session_options(threads)
-        self.sessions = {
-            name: onnxruntime.InferenceSession(
-                str(self.manifest.graph_path(directory, name)),
-                options,
-                providers=providers or ["CPUExecutionProvider"],
-            )
-            for name in GRAPHS
-        }
+        graphs = {name: str(self.manifest.graph_path(directory, name)) for name in GRAPHS}
+        self.sessions = open_sessions(graphs, threads, providers)
 
     def _run(self, name: str, *inputs: np.ndarray) -> list[Any]:
         feed = dict(zip(INPUT_NAMES[name], inputs, strict=True))

@@ -43,3 +43,27 @@ def session_options(threads: int | None) -> Any:
         options.intra_op_num_threads = threads
         options.inter_op_num_threads = 1
     return options
+
+
+def open_sessions(
+    graphs: dict[str, str],
+    threads: int | None = None,
+    providers: list[Any] | None = None,
+) -> dict[str, Any]:
+    """One onnxruntime session per graph, with `session_options`.
+
+    Args:
+        graphs: graph name → its ``.onnx`` file.
+        threads: intra-op threads per session (None: onnxruntime's default).
+        providers: execution providers (default: the CPU provider).
+
+    Raises:
+        ModuleNotFoundError: onnxruntime is missing.
+    """
+    onnxruntime = onnxruntime_module()
+    options = session_options(threads)
+    chosen = providers or ["CPUExecutionProvider"]
+    return {
+        name: onnxruntime.InferenceSession(path, options, providers=chosen)
+        for name, path in graphs.items()
+    }

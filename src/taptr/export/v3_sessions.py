@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from taptr.export.sessions import onnxruntime_module, session_options
+from taptr.export.sessions import onnxruntime_module, open_sessions
 from taptr.export.v3_manifest import GRAPHS, V3Manifest
 
 
@@ -39,17 +39,10 @@ class OnnxGraphs:
         threads: int | None = None,
         providers: list[Any] | None = None,
     ) -> None:
-        onnxruntime = onnxruntime_module()
+        onnxruntime_module()  # its message before the manifest's
         self.manifest = V3Manifest.load(directory)
-        options = session_options(threads)
-        self.sessions = {
-            name: onnxruntime.InferenceSession(
-                str(self.manifest.graph_path(directory, name)),
-                options,
-                providers=providers or ["CPUExecutionProvider"],
-            )
-            for name in GRAPHS
-        }
+        graphs = {name: str(self.manifest.graph_path(directory, name)) for name in GRAPHS}
+        self.sessions = open_sessions(graphs, threads, providers)
 
     def encode(self, frames: np.ndarray) -> np.ndarray:
         """Frames (F, 3, H, W) RGB in [0, 1] → memory (F, S, C)."""
