@@ -31,7 +31,7 @@ import time
 import urllib.request
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TypeVar
+from typing import Generic, TypeVar
 from urllib.parse import urlsplit
 
 T = TypeVar("T")
@@ -127,28 +127,42 @@ def short_reason(error: BaseException) -> str:
     return f"{cut[:boundary].rstrip(' ,;:(=/')} ..." if boundary > 0 else f"{cut} ..."
 
 
+class _InThread(Generic[T]):
+    """``call()`` run in a daemon thread, its value or error handed to the caller's thread.
+
+    Attributes:
+        done: set once ``call`` has returned or raised.
+    """
+
+    def __init__(self, call: Callable[[], T], name: str) -> None:
+        self.done = threading.Event()
+        self._outcome: dict[str, object] = {}
+        threading.Thread(target=self._run, args=(call,), daemon=True, name=name).start()
+
+    def _run(self, call: Callable[[], T]) -> None:
+        try:
+            self._outcome["value"] = call()
+        except BaseException as error:  # handed to the caller's thread
+            self._outcome["error"] = error
+        self.done.set()
+
+    def result(self) -> T:
+        """What ``call`` returned, or its error raised here (once `done` is set)."""
+        if "error" in self._outcome:
+            raise self._outcome["error"]  # type: ignore[misc]
+        return self._outcome["value"]  # type: ignore[return-value]
+
+
 def within(seconds: float, call: Callable[[], T], late: str) -> T:
     """``call()``, or `TransferError` (``late``) when it has not returned after ``seconds``.
 
     The call runs in a daemon thread: one stuck in the resolver or on a silent socket is
     left to end with its own timeout, and this returns at once.
     """
-    done = threading.Event()
-    outcome: dict[str, object] = {}
-
-    def run() -> None:
-        try:
-            outcome["value"] = call()
-        except BaseException as error:  # handed to the caller's thread
-            outcome["error"] = error
-        done.set()
-
-    threading.Thread(target=run, daemon=True, name="taptr-download-probe").start()
-    if not done.wait(seconds):
+    job = _InThread(call, "taptr-download-probe")
+    if not job.done.wait(seconds):
         raise TransferError(f"{late} within {seconds:g} s ({TIMEOUT_VARIABLE} sets how long)")
-    if "error" in outcome:
-        raise outcome["error"]  # type: ignore[misc]
-    return outcome["value"]  # type: ignore[return-value]
+    return job.result()
 
 
 def reach(url: str, seconds: float) -> None:
@@ -252,27 +266,15 @@ def watched(transfer: Callable[[], T], watch: Watch, stop: threading.Event) -> T
     Raises:
         TransferError: too slow (the transfer's own errors are raised as they are).
     """
-    done = threading.Event()
-    outcome: dict[str, object] = {}
-
-    def run() -> None:
-        try:
-            outcome["value"] = transfer()
-        except BaseException as error:  # handed to the caller's thread
-            outcome["error"] = error
-        done.set()
-
-    threading.Thread(target=run, daemon=True, name="taptr-download").start()
+    job = _InThread(transfer, "taptr-download")
     try:
-        while not done.wait(POLL_SECONDS):
+        while not job.done.wait(POLL_SECONDS):
             slow = watch.too_slow()
             if slow is not None:
                 stop.set()
-                done.wait(1.0)  # a cancellable library stops within its poll
+                job.done.wait(1.0)  # a cancellable library stops within its poll
                 raise TransferError(slow)
     except BaseException:
         stop.set()
         raise
-    if "error" in outcome:
-        raise outcome["error"]  # type: ignore[misc]
-    return outcome["value"]  # type: ignore[return-value]
+    return job.result()
