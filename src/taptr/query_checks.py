@@ -8,6 +8,9 @@ alone takes seconds and most of a gigabyte.
 
 from __future__ import annotations
 
+import operator
+from typing import Any
+
 import numpy as np
 
 from taptr.io.limits import LIMITS, limit
@@ -69,3 +72,36 @@ def check_query_values(
             f"query positions outside the {width}x{height} frame: x must lie in "
             f"[-0.5, {width - 0.5}] and y in [-0.5, {height - 0.5}] (pixel centres at integers)"
         )
+
+
+def whole_number(value: Any, name: str) -> int:
+    """``value`` as an int; bools, floats and strings are refused (2.5 must not become 2)."""
+    if isinstance(value, bool | np.bool_):
+        raise ValueError(f"{name} must be a whole number, got {value!r}")
+    try:
+        return operator.index(value)
+    except TypeError:
+        raise ValueError(f"{name} must be a whole number, got {value!r}") from None
+
+
+def grid_points(
+    grid_size: int, frame: int, height: int, width: int, *, name: str = "grid_size"
+) -> np.ndarray:
+    """A grid_size × grid_size grid at cell centres of one frame, (N, 3) float32 (t, x, y).
+
+    Args:
+        grid_size: points per side, a whole number of at least 1.
+        frame: frame index t of every query.
+        height: frame height H in pixels.
+        width: frame width W in pixels.
+        name: how error messages call ``grid_size`` (the CLI passes ``--grid``).
+    """
+    grid_size = whole_number(grid_size, name)
+    if grid_size < 1:
+        raise ValueError(f"{name} must be at least 1, got {grid_size}")
+    check_num_points(grid_size * grid_size, f"{name} {grid_size}")
+    cells = np.arange(grid_size, dtype=np.float32) + np.float32(0.5)
+    xs = cells * np.float32(width) / np.float32(grid_size) - np.float32(0.5)
+    ys = cells * np.float32(height) / np.float32(grid_size) - np.float32(0.5)
+    gy, gx = np.meshgrid(ys, xs, indexing="ij")
+    return np.stack((np.full_like(gx, frame), gx, gy), axis=-1).reshape(-1, 3)

@@ -6,7 +6,6 @@ NaN), so that the CLI can print it without a traceback.
 
 from __future__ import annotations
 
-import operator
 from typing import Any
 
 import numpy as np
@@ -16,7 +15,7 @@ from torch import Tensor
 # re-exported: the point limit is part of this module's interface
 from taptr.query_checks import MAX_POINTS_ENV as MAX_POINTS_ENV
 from taptr.query_checks import check_num_points as check_num_points
-from taptr.query_checks import check_query_values
+from taptr.query_checks import check_query_values, grid_points
 from taptr.query_checks import max_points as max_points
 
 RESULT_BYTES_PER_POINT_FRAME = 16
@@ -97,23 +96,8 @@ def query_tensor(
 def grid_queries(
     grid_size: int, frame: int, height: int, width: int, *, name: str = "grid_size"
 ) -> Tensor:
-    """A grid_size × grid_size grid of queries at cell centres of one frame, (N, 3) as (t, x, y).
-
-    Args:
-        grid_size: points per side, a whole number of at least 1.
-        frame: frame index t of every query.
-        height: frame height H in pixels.
-        width: frame width W in pixels.
-        name: how error messages call ``grid_size`` (the CLI passes ``--grid``).
-    """
-    grid_size = _whole_number(grid_size, name)
-    if grid_size < 1:
-        raise ValueError(f"{name} must be at least 1, got {grid_size}")
-    check_num_points(grid_size * grid_size, f"{name} {grid_size}")
-    xs = (torch.arange(grid_size, dtype=torch.float32) + 0.5) * width / grid_size - 0.5
-    ys = (torch.arange(grid_size, dtype=torch.float32) + 0.5) * height / grid_size - 0.5
-    gy, gx = torch.meshgrid(ys, xs, indexing="ij")
-    return torch.stack((torch.full_like(gx, float(frame)), gx, gy), dim=-1).view(-1, 3)
+    """`taptr.query_checks.grid_points` as a tensor, (N, 3) float32 (t, x, y)."""
+    return torch.from_numpy(grid_points(grid_size, frame, height, width, name=name))
 
 
 def check_result_memory(batch: int, num_frames: int, num_points: int) -> None:
@@ -143,16 +127,6 @@ def _available_memory() -> int | None:
     except (OSError, ValueError, IndexError):
         return None
     return None
-
-
-def _whole_number(value: Any, name: str) -> int:
-    """``value`` as an int; bools, floats and strings are refused (2.5 must not become 2)."""
-    if isinstance(value, bool | np.bool_):
-        raise ValueError(f"{name} must be a whole number, got {value!r}")
-    try:
-        return operator.index(value)
-    except TypeError:
-        raise ValueError(f"{name} must be a whole number, got {value!r}") from None
 
 
 def _real_tensor(queries: Any) -> Tensor:

@@ -14,6 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from taptr.query_checks import grid_points
+
 
 @dataclass(frozen=True)
 class QuerySpec:
@@ -124,9 +126,7 @@ def build_queries(
         frame = option("query-frame")
         raise ValueError(f"{frame} {spec.query_frame} outside [0, {num_frames})")
     if spec.grid is not None:
-        from taptr.api.inputs import grid_queries
-
-        return grid_queries(spec.grid, spec.query_frame, height, width, name=option("grid")).numpy()
+        return grid_points(spec.grid, spec.query_frame, height, width, name=option("grid"))
     from taptr.api.regions import read_mask, sample_region_queries
 
     assert spec.mask is not None  # exactly one of points, grid and mask is given

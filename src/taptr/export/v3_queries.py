@@ -4,7 +4,7 @@ Each function is the twin of a PyTorch one and is tested against it through the
 predictor and the online tracker (tests/test_export_v3_loop.py):
 
 - `pixel_queries` validates (t, x, y) pixel queries (`taptr.api.inputs.query_tensor`,
-  sharing `taptr.query_checks`), `grid_queries` places a grid (`taptr.api.inputs`);
+  sharing `taptr.query_checks`; the grid is `taptr.query_checks.grid_points`, shared too);
 - `normalised` maps pixels to the model's units x / (W − 1), y / (H − 1)
   (`taptr.geometry.pixels_to_normalized`);
 - `support_scheme` and `support_points` surround the queries as the model's config says
@@ -54,18 +54,6 @@ def pixel_queries(queries: Any, num_frames: int | None, height: int, width: int)
     check_num_points(array.shape[0])
     check_query_values(array, num_frames, height, width)
     return array.astype(np.float32)
-
-
-def grid_queries(grid_size: int, frame: int, height: int, width: int) -> np.ndarray:
-    """A grid_size × grid_size grid at cell centres of one frame, (N, 3) float32 (t, x, y)."""
-    if isinstance(grid_size, bool) or not isinstance(grid_size, int) or grid_size < 1:
-        raise ValueError(f"grid_size must be a whole number of at least 1, got {grid_size!r}")
-    check_num_points(grid_size * grid_size, f"grid_size {grid_size}")
-    cells = np.arange(grid_size, dtype=np.float32) + np.float32(0.5)
-    xs = cells * np.float32(width) / np.float32(grid_size) - np.float32(0.5)
-    ys = cells * np.float32(height) / np.float32(grid_size) - np.float32(0.5)
-    gy, gx = np.meshgrid(ys, xs, indexing="ij")
-    return np.stack((np.full_like(gx, frame), gx, gy), axis=-1).reshape(-1, 3)
 
 
 def pixel_scale(height: int, width: int) -> np.ndarray:

@@ -20,7 +20,6 @@ from taptr.export.v3_loop import V3Graphs, track_points
 from taptr.export.v3_manifest import V3Manifest
 from taptr.export.v3_queries import (
     both_ways,
-    grid_queries,
     normalised,
     on_own_frames,
     pixel_queries,
@@ -30,6 +29,7 @@ from taptr.export.v3_queries import (
     visible,
 )
 from taptr.export.v3_resize import resize_frames
+from taptr.query_checks import grid_points
 
 
 class TrackResult(NamedTuple):
@@ -145,7 +145,7 @@ class OnnxTracker:
         if grid_size is not None:
             if not 0 <= grid_query_frame < num_frames:
                 raise ValueError(f"grid_query_frame outside [0, {num_frames})")
-            queries = grid_queries(grid_size, grid_query_frame, height, width)
+            queries = grid_points(grid_size, grid_query_frame, height, width)
         query = pixel_queries(queries, num_frames, height, width)
 
         def one_pass(pass_queries: np.ndarray, reverse: bool) -> tuple[np.ndarray, np.ndarray]:
