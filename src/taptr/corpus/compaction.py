@@ -36,16 +36,19 @@ def kept_entries(index: pa.Table) -> dict[str, set[tuple[str, str]]]:
     return kept
 
 
-def compact(layout: ResultLayout, run: str) -> int:
+def compact(layout: ResultLayout, run: str, index: pa.Table | None = None) -> int:
     """Removes superseded rows from the dataset; returns the parts rewritten or removed.
 
     Args:
         layout: the output folder (no actor writing to it).
         run: the current run (names the rewritten parts).
+        index: the folder's index as just read (`ResultLayout.read_index`), if the
+            caller holds it; else it is read here.
     """
     import pyarrow.compute as pc
 
-    index = layout.read_index()
+    if index is None:
+        index = layout.read_index()
     if len(index) == 0 or pc.count_distinct(index["video_id"]).as_py() == len(index):
         return 0  # each video once: nothing superseded (the common case, checked cheaply)
     kept = kept_entries(index)

@@ -122,19 +122,20 @@ def track_corpus(
     layout = ResultLayout.at(options.out)
     layout.check()  # before anything else: a foreign folder is refused at once
     summary = Summary(total=len(videos), run=new_run())
-    todo = plan(videos, sound_index(layout, print_line), options, summary)
+    index = sound_index(layout, print_line)
+    todo = plan(videos, index, options, summary)
     # nothing to track: no cluster to join (a finished corpus reruns in seconds)
     cluster = joined(ray, options.address) if todo else contextlib.nullcontext()
     with cluster:
         actors, shape = _size(ray, options) if todo else (0, None)
         layout.prepare()
-        compact(layout, summary.run)  # what a stopped run left superseded
+        compact(layout, summary.run, index)  # what a stopped run left superseded
         layout.write_summary(summary.as_dict())  # "running": an old summary is not this run's
         try:
             if todo and shape is not None:
                 starter = _actor_starter(ray, worker, make_predictor, options, summary.run, shape)
                 _run(todo, starter, options, (layout, summary, actors), print_line)
-            compact(layout, summary.run)
+                compact(layout, summary.run)  # what this run superseded
             layout.finish()
             summary.state = "finished"
         finally:
