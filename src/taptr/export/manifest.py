@@ -13,6 +13,8 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Literal
 
+from taptr.io.atomic import atomic_path
+
 ExportFormat = Literal["onnx", "torchscript"]
 
 MANIFEST_NAME = "taptr-export.json"
@@ -79,10 +81,7 @@ class ExportManifest:
 
     def save(self, directory: str | os.PathLike[str]) -> Path:
         """Writes ``taptr-export.json`` into ``directory``."""
-        data: dict[str, Any] = {"taptr_export": FORMAT_VERSION, **asdict(self)}
-        path = Path(directory) / MANIFEST_NAME
-        path.write_text(json.dumps(data, indent=2) + "\n")
-        return path
+        return write_manifest(directory, asdict(self))
 
     @classmethod
     def load(cls, directory: str | os.PathLike[str]) -> ExportManifest:
@@ -118,3 +117,20 @@ def read_manifest(directory: str | os.PathLike[str]) -> dict[str, Any]:
     if version != FORMAT_VERSION:
         raise ValueError(f"{path}: export format {version}, this taptr reads {FORMAT_VERSION}")
     return data
+
+
+def write_manifest(
+    directory: str | os.PathLike[str], fields: dict[str, Any], indent: int = 2
+) -> Path:
+    """Writes the manifest of an export folder (any model), whole or not at all.
+
+    Args:
+        directory: the export folder.
+        fields: the manifest's fields; the format version is added first.
+        indent: JSON indentation.
+    """
+    path = Path(directory) / MANIFEST_NAME
+    data = {"taptr_export": FORMAT_VERSION, **fields}
+    with atomic_path(path) as temporary:
+        temporary.write_text(json.dumps(data, indent=indent) + "\n")
+    return path

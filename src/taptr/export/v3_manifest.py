@@ -10,13 +10,11 @@ threshold. docs/EXPORT.md walks through the loop; `taptr.export.v3_loop` is that
 
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
 
-from taptr.export.manifest import FORMAT_VERSION, MANIFEST_NAME, read_manifest
+from taptr.export.manifest import read_manifest, write_manifest
 
 GRAPHS = ("encoder", "start_points", "decode_step")
 """Graph names: frames → memory; memory and positions → content and context; one frame's
@@ -184,11 +182,8 @@ class V3Manifest:
 
     def save(self, directory: str | os.PathLike[str]) -> Path:
         """Writes ``taptr-export.json`` into ``directory``."""
-        data: dict[str, Any] = {"taptr_export": FORMAT_VERSION, **asdict(self)}
-        data["files"] = {name: FILES[name] for name in GRAPHS}
-        path = Path(directory) / MANIFEST_NAME
-        path.write_text(json.dumps(data, indent=1) + "\n")
-        return path
+        fields = {**asdict(self), "files": {name: FILES[name] for name in GRAPHS}}
+        return write_manifest(directory, fields, indent=1)
 
     @classmethod
     def load(cls, directory: str | os.PathLike[str]) -> V3Manifest:
