@@ -7,6 +7,7 @@ import os
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from taptr.api.spec import ModelSpec
 from taptr.cli.common.options import (
     MAX_INPUT_SIDE,
     MIN_INPUT_SIDE,
@@ -149,27 +150,24 @@ def check_checkpoint_name(checkpoint: str | None, flag: str = "--checkpoint") ->
         raise FileNotFoundError(f"{flag} {checkpoint}: file not found")
 
 
-def load_predictor(args: argparse.Namespace) -> Predictor:
-    """The predictor the model arguments describe (``--device`` is checked first)."""
-    check_device(args.device)
-    from taptr.api.predictor import Predictor
-    from taptr.runtime.precision import autocast_type
-
-    size = tuple(args.input_size) if args.input_size else None
-    predictor = Predictor.from_pretrained(
-        args.checkpoint,
+def model_spec(args: argparse.Namespace) -> ModelSpec:
+    """The tracker the model arguments describe, as a picklable `ModelSpec`."""
+    return ModelSpec(
+        checkpoint=args.checkpoint,
         device=args.device,
-        input_size=size,
+        dtype=args.dtype,
+        input_size=tuple(args.input_size) if args.input_size else None,
         context_points=args.context_points,
-        support_points=None if args.support == "auto" else args.support,
+        support=None if args.support == "auto" else args.support,
         history_frames=args.history_frames,
-        autocast=autocast_type(args.dtype),
         kernel=args.kernel,
         frames_per_call=args.frames_per_call,
         capture=args.capture,
+        compile=args.compile,
     )
-    if args.compile:
-        from taptr.export.compile import compile_model
 
-        compile_model(predictor.model)
-    return predictor
+
+def load_predictor(args: argparse.Namespace) -> Predictor:
+    """The predictor the model arguments describe (``--device`` is checked first)."""
+    check_device(args.device)
+    return model_spec(args).load()
