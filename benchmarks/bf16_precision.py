@@ -45,9 +45,9 @@ from torch import nn
 from taptr.api.predictor import Predictor
 from taptr.data.kubric import list_sequences, read_sequence
 from taptr.data.sample_video import make_sample_clip
-from taptr.hub import load_model
 from taptr.model.ops import dense
 from taptr.model.taptr import TAPTR
+from taptr.weights.registry import load_model
 
 BF16, F32 = torch.bfloat16, torch.float32
 LAYERS = "decoder.layers.*."

@@ -178,8 +178,8 @@ def run_cases(args: argparse.Namespace, model: torch.nn.Module, folder: str) -> 
 
 def load_model(args: argparse.Namespace) -> torch.nn.Module:
     """``--checkpoint``, or the preset at the benchmark's input size, seeded."""
-    from taptr.checkpoint import load_checkpoint
     from taptr.config import get_config
+    from taptr.weights.checkpoint import load_checkpoint
 
     if args.checkpoint is not None:
         return load_checkpoint(args.checkpoint).eval()

@@ -99,8 +99,8 @@ def _kubric_with(folder: Path, frame: bytes) -> Path:
 
 
 def _config_checkpoint(folder: Path, **config: object) -> Path:
-    from taptr.checkpoint import checkpoint_dict
-    from taptr.hub import load_model
+    from taptr.weights.checkpoint import checkpoint_dict
+    from taptr.weights.registry import load_model
 
     data = checkpoint_dict(load_model(None).model)
     data["config"] = dict(data["config"], **config)
@@ -111,10 +111,10 @@ def _config_checkpoint(folder: Path, **config: object) -> Path:
 def _cases(folder: Path) -> dict[str, Callable[[], object]]:
     """Every case by name: a call that reads its input."""
     from taptr.api.regions import read_mask
-    from taptr.checkpoint import load_checkpoint
     from taptr.cli.edit import _read_overlay
     from taptr.data.kubric import read_sequence
     from taptr.io.video import read_video
+    from taptr.weights.checkpoint import load_checkpoint
 
     f = folder
     cases: dict[str, Callable[[], object]] = {"baseline": lambda: None}

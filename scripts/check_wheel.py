@@ -35,10 +35,10 @@ WEIGHTS = Path("taptr") / "weights" / "taptr-small-synthetic.pth"
 INSIDE = """
 import hashlib, json, sys
 from pathlib import Path
-import taptr, taptr.hub
+import taptr, taptr.weights.registry
 package = Path(taptr.__file__).parent
 assert Path(sys.prefix) in package.parents, f"taptr imported from {package}, not the venv"
-weights = taptr.hub.bundled_path("taptr-small-synthetic")
+weights = taptr.weights.registry.bundled_path("taptr-small-synthetic")
 print(json.dumps({
     "version": taptr.__version__,
     "package": str(package),

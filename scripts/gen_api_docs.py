@@ -38,9 +38,9 @@ SECTIONS = {
         "taptr.runtime.precision",
     ],
     "Models and checkpoints": [
-        "taptr.hub",
-        "taptr.hub_weights",
-        "taptr.checkpoint",
+        "taptr.weights.registry",
+        "taptr.weights.hub",
+        "taptr.weights.checkpoint",
         "taptr.config",
         "taptr.io.limits",
         "taptr.model.build",

@@ -288,7 +288,7 @@ def view_checkpoint(path: Path, numel: int) -> Path:
     that computes on the whole view (a finiteness check) allocates ``numel`` elements.
     """
     from taptr import build_model
-    from taptr.checkpoint import checkpoint_dict
+    from taptr.weights.checkpoint import checkpoint_dict
 
     torch.manual_seed(0)
     data = checkpoint_dict(build_model("tiny"))
@@ -308,7 +308,7 @@ def deep_config_checkpoint(path: Path, depth: int = 100_000, key: str = "d_model
     ``depth`` times, then APPEND ``depth - 1`` times.
     """
     from taptr import build_model
-    from taptr.checkpoint import checkpoint_dict
+    from taptr.weights.checkpoint import checkpoint_dict
 
     data = checkpoint_dict(build_model("tiny"))
     data["config"][key] = DEEP

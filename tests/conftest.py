@@ -99,8 +99,8 @@ def tiny_model():
 def tiny_checkpoint(tmp_path_factory) -> Path:
     """The tiny model (seed 0, 6 context points) saved as a checkpoint file."""
     from taptr import build_model
-    from taptr.checkpoint import save_checkpoint
     from taptr.config import get_config
+    from taptr.weights.checkpoint import save_checkpoint
 
     torch.manual_seed(0)
     built = build_model(get_config("tiny").replace(context_points=6))

@@ -13,10 +13,10 @@ import torch
 from filelock import FileLock
 
 import taptr
-from taptr.checkpoint import save_checkpoint
 from taptr.cli.main import main
 from taptr.export.v3_graphs import prepare_v3, v3_manifest, v3_wrappers
 from taptr.model.v3.taptr import TAPTRv3
+from taptr.weights.checkpoint import save_checkpoint
 
 
 def randomised_v3(preset: str = "tiny-v3", seed: int = 0, **changes) -> TAPTRv3:

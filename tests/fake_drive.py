@@ -4,9 +4,9 @@ It answers as Drive does for a large file: ``/uc?export=download&id=ID`` gives a
 HTML confirmation page (a ``download-form`` whose action and hidden fields make the
 download address), and only that address, with the page's hidden ``confirm`` and ``uuid``
 values, gives the file. gdown reads the page; ``TAPTR_DRIVE_URL`` (the testing hook of
-`taptr.drive`) points taptr at the fake. Misbehaviours, each an option: cut the transfer
-short, answer late, trickle the file a byte at a time, send far more than the file (with
-its size declared, or without), serve a web page or Drive's quota page instead of it.
+`taptr.weights.drive_download`) points taptr at the fake. Misbehaviours, each an option:
+cut the transfer short, answer late, trickle the file a byte at a time, send far more than the file
+(with its size declared, or without), serve a web page or Drive's quota page instead of it.
 """
 
 from __future__ import annotations

@@ -142,7 +142,7 @@ _FILE_ID = "fuzz-drive-id"
 @functools.cache
 def _tiny_file() -> bytes:
     from taptr import build_model
-    from taptr.checkpoint import checkpoint_dict
+    from taptr.weights.checkpoint import checkpoint_dict
 
     torch.manual_seed(0)
     stream = io.BytesIO()
@@ -186,15 +186,15 @@ def download_from_misbehaving_drive(case: tuple[str, int]) -> None:
 def _fetch_and_check(
     content: bytes, options: dict[str, Any], target: Path, before: bytes | None
 ) -> None:
-    from taptr import hub
-    from taptr.drive_weights import release_bytes
+    from taptr.weights import registry
+    from taptr.weights.drive import release_bytes
     from tests.fake_drive import FakeDrive
 
     fake = FakeDrive(content, ids=(_FILE_ID,), **options)
     started = time.monotonic()
     try:
         with _env(TAPTR_DRIVE_URL=fake.url):
-            _outcome(lambda: hub.load_model("fuzz-drive"), target, content, before)
+            _outcome(lambda: registry.load_model("fuzz-drive"), target, content, before)
     finally:
         fake.close()
         seconds = time.monotonic() - started
@@ -223,19 +223,19 @@ def _outcome(load: Callable[[], Any], target: Path, content: bytes, before: byte
 @contextlib.contextmanager
 def _registered(folder: Path) -> Iterator[Path]:
     """``fuzz-drive`` registered as Drive weights (the tiny preset) fetched into ``folder``."""
-    from taptr import hub
-    from taptr.drive_weights import ManualWeights
+    from taptr.weights import registry
+    from taptr.weights.drive import ManualWeights
 
     weights = folder / "weights"
     url = f"https://drive.google.com/file/d/{_FILE_ID}"
-    hub.MANUAL["fuzz-drive"] = ManualWeights(url, "tiny.pth", "tiny", "tiny", "")
+    registry.MANUAL["fuzz-drive"] = ManualWeights(url, "tiny.pth", "tiny", "tiny", "")
     bounds = {"TAPTR_DOWNLOAD_TIMEOUT": "0.3", "TAPTR_DOWNLOAD_MIN_RATE": "16M"}
     offline = {key: "0" for key in ("TAPTR_OFFLINE", "HF_HUB_OFFLINE")}
     try:
         with _env(TAPTR_WEIGHTS_DIR=str(weights), **bounds, **offline):
             yield weights / "tiny.pth"
     finally:
-        del hub.MANUAL["fuzz-drive"]
+        del registry.MANUAL["fuzz-drive"]
 
 
 CATEGORIES: dict[str, tuple[Any, Callable[[Any], Any]]] = {

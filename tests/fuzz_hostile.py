@@ -440,12 +440,12 @@ def _within(run: Callable[[], Any], fifos: list[Path]) -> None:
 def _special_role(root: Path, role: str, stem: str) -> tuple[Path, Callable[[], Any]]:
     """(the path to make special, a call that reads it in ``role``)."""
     from taptr.api.regions import read_mask
-    from taptr.checkpoint import load_checkpoint
     from taptr.cli.common.points import read_points_file
     from taptr.cli.edit import _read_overlay
     from taptr.data.kubric import read_sequence
     from taptr.data.tapvid import iter_tapvid
     from taptr.io.video import read_video, video_info
+    from taptr.weights.checkpoint import load_checkpoint
 
     if role == "video":
         path = root / f"{stem}.mp4"

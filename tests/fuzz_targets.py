@@ -254,7 +254,7 @@ def kubric_folders(draw: st.DrawFn) -> dict[str, bytes]:
 
 def read_checkpoint(data: bytes) -> None:
     """Loads a checkpoint file holding ``data`` and checks the model's weights are finite."""
-    from taptr.checkpoint import load_checkpoint, read_visibility_threshold
+    from taptr.weights.checkpoint import load_checkpoint, read_visibility_threshold
 
     with tempfile.TemporaryDirectory() as folder:
         path = Path(folder) / "model.pth"
@@ -272,7 +272,7 @@ def read_checkpoint(data: bytes) -> None:
 @cache
 def _tiny_checkpoint() -> dict[str, Any]:
     from taptr import build_model
-    from taptr.checkpoint import checkpoint_dict
+    from taptr.weights.checkpoint import checkpoint_dict
 
     torch.manual_seed(0)
     return checkpoint_dict(build_model("tiny"))
@@ -358,22 +358,23 @@ _NAMED_PRESETS = ("tiny", "tiny-v3", "small")
 def read_named_weights(case: tuple[str, str, bool, float | None]) -> None:
     """Saves a ``found`` model under the file name of weights that promise ``expected``.
 
-    The file is loaded by name (`taptr.hub.load_model`, offline, from the weights folder);
+    The file is loaded by name (`taptr.weights.registry.load_model`, offline, from the
+    weights folder);
     a load that returns a model of another architecture than the name's is silent wrong
     output, a refusal of the name's own architecture is a traceback.
     """
-    from taptr import hub
-    from taptr.checkpoint import CheckpointError
-    from taptr.checkpoint_identity import same_architecture
     from taptr.config import get_config
-    from taptr.drive_weights import ManualWeights
+    from taptr.weights import registry
+    from taptr.weights.checkpoint import CheckpointError
+    from taptr.weights.drive import ManualWeights
+    from taptr.weights.identity import same_architecture
 
     found, expected, half, threshold = case
     entry = ManualWeights("https://drive.google.com/file/d/fuzz", "fuzz.pth", expected, "x", "")
     with tempfile.TemporaryDirectory() as folder, _named_in(folder, entry):
         Path(folder, "fuzz.pth").write_bytes(_named_file(found, half, threshold))
         try:
-            model = hub.load_model("fuzz-official").model
+            model = registry.load_model("fuzz-official").model
         except CheckpointError:
             if same_architecture(get_config(found), get_config(expected)):
                 raise AssertionError(f"{found} refused under a name of {expected}") from None
@@ -385,15 +386,15 @@ def read_named_weights(case: tuple[str, str, bool, float | None]) -> None:
 @contextlib.contextmanager
 def _named_in(folder: str, entry: Any) -> Iterator[None]:
     """``fuzz-official`` registered as Drive weights read (offline) from ``folder``."""
-    from taptr import hub
+    from taptr.weights import registry
 
     saved = {key: os.environ.get(key) for key in ("TAPTR_WEIGHTS_DIR", "TAPTR_OFFLINE")}
     os.environ.update(TAPTR_WEIGHTS_DIR=folder, TAPTR_OFFLINE="1")
-    hub.MANUAL["fuzz-official"] = entry
+    registry.MANUAL["fuzz-official"] = entry
     try:
         yield
     finally:
-        del hub.MANUAL["fuzz-official"]
+        del registry.MANUAL["fuzz-official"]
         for key, value in saved.items():
             if value is None:
                 os.environ.pop(key, None)
@@ -404,7 +405,7 @@ def _named_in(folder: str, entry: Any) -> Iterator[None]:
 @cache
 def _named_file(preset: str, half: bool, threshold: float | None) -> bytes:
     from taptr import build_model
-    from taptr.checkpoint import save_checkpoint
+    from taptr.weights.checkpoint import save_checkpoint
 
     torch.manual_seed(0)
     with tempfile.TemporaryDirectory() as folder:

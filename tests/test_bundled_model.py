@@ -11,8 +11,8 @@ from taptr.data.photo_bench import PhotoBenchConfig, make_photo_video
 from taptr.data.photos import load_builtin_photos
 from taptr.data.synthetic import SyntheticConfig, make_video
 from taptr.eval.metrics import compute_tapvid_metrics
-from taptr.hub import bundled_path
 from taptr.types import TrackingSample
+from taptr.weights.registry import bundled_path
 
 pytestmark = pytest.mark.skipif(
     bundled_path("taptr-small-synthetic") is None, reason="no bundled weights in this tree"

@@ -11,13 +11,13 @@ import pytest
 import torch
 
 import taptr
-from taptr.checkpoint import read_visibility_threshold, save_checkpoint
 from taptr.cli.main import main as cli_main
 from taptr.data.kubric import list_sequences, read_sequence, write_sequence
 from taptr.data.sample_video import make_sample_clip
 from taptr.eval.calibrate import choose_threshold, predict_videos, write_calibrated
 from taptr.eval.datasets import open_dataset
 from taptr.types import TrackingResult, TrackingSample
+from taptr.weights.checkpoint import read_visibility_threshold, save_checkpoint
 
 
 def _write_labelled_set(root, num_videos: int = 2, num_frames: int = 10, size: int = 256) -> None:
@@ -109,7 +109,7 @@ def test_checkpoint_stores_and_predictor_uses_the_threshold(tmp_path):
 def test_write_calibrated_keeps_the_other_entries(tmp_path):
     model = taptr.build_model("tiny")
     source = tmp_path / "run.pt"
-    data = {**taptr.checkpoint.checkpoint_dict(model, model.state_dict()), "step": 7}
+    data = {**taptr.weights.checkpoint.checkpoint_dict(model, model.state_dict()), "step": 7}
     torch.save(data, source)
     out = write_calibrated(source, tmp_path / "calibrated.pt", 0.35)
     written = torch.load(out, weights_only=True)

@@ -9,9 +9,14 @@ import pytest
 import torch
 
 import taptr
-from taptr.checkpoint import CheckpointError, UnsafeCheckpointError, read_file, save_checkpoint
 from taptr.cli.main import main as cli_main
 from taptr.official.convert import ConversionError, convert_state_dict
+from taptr.weights.checkpoint import (
+    CheckpointError,
+    UnsafeCheckpointError,
+    read_file,
+    save_checkpoint,
+)
 from tests.helpers import FIXTURES
 
 
@@ -170,7 +175,7 @@ def test_convert_cli_reports_a_wrong_file_in_one_line(tmp_path, capsys):
 
 
 def test_convert_keeps_a_calibrated_threshold(tmp_path):
-    from taptr.checkpoint import read_visibility_threshold
+    from taptr.weights.checkpoint import read_visibility_threshold
 
     source = save_checkpoint(
         taptr.build_model("tiny"), tmp_path / "cal.pth", visibility_threshold=0.3

@@ -170,7 +170,7 @@ def test_bad_input_is_one_line_and_writes_nothing(clip, tmp_path, capsys, argv, 
     cv2.imwrite(str(tmp_path / "small.png"), np.zeros((10, 10), np.uint8))
     (tmp_path / "garbage.mp4").write_bytes(b"\x00" * 100)
     from taptr import build_model
-    from taptr.checkpoint import checkpoint_dict
+    from taptr.weights.checkpoint import checkpoint_dict
 
     bad = checkpoint_dict(build_model("tiny"))
     bad["model"].pop("encoder.level_embed")

@@ -273,7 +273,7 @@ def test_bugs_are_one_line_unless_verbose(monkeypatch, capsys):
 
 def test_multi_line_messages_are_joined_into_one(tmp_path, clip, capsys):
     from taptr import build_model
-    from taptr.checkpoint import checkpoint_dict
+    from taptr.weights.checkpoint import checkpoint_dict
 
     bad = checkpoint_dict(build_model("tiny"))
     bad["model"].pop("encoder.level_embed")

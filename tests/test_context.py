@@ -221,9 +221,9 @@ def test_evaluation_can_track_a_few_points_per_call(model):
 
 
 def test_eval_flags_reach_the_predictor(tmp_path):
-    from taptr.checkpoint import save_checkpoint
     from taptr.cli.main import build_parser
     from taptr.eval.runner import EvalConfig, build_protocol
+    from taptr.weights.checkpoint import save_checkpoint
 
     path = save_checkpoint(taptr.build_model("tiny"), tmp_path / "tiny.pth")
     args = build_parser().parse_args(

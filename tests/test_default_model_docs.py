@@ -1,13 +1,12 @@
 """One truth about which model runs: every page and docstring names the code's default.
 
-The default is read from `taptr.hub` (`DEFAULT_MODEL`, and `FALLBACK_MODEL` when it cannot be
-had), so the test follows the code. A claim is checked where text says which model is the
-default: a name followed by "(default)", a name right before "default model", the first
-model that a clause starting with "default" names, and the comment on a
-``from_pretrained()`` line that names no model. Model names are those of published and
-bundled weights (`taptr.hub.WEIGHTS`, `taptr.hub.BUNDLED`), so a new name in a table is
-covered without changing this file; preset names ("small", "tiny") are ordinary words too
-often to be read as claims.
+The default is read from `taptr.weights.registry` (`DEFAULT_MODEL`, and `FALLBACK_MODEL` when it
+cannot be had), so the test follows the code. A claim is checked where text says which model is the
+default: a name followed by "(default)", a name right before "default model", the first model that a
+clause starting with "default" names, and the comment on a ``from_pretrained()`` line that names no
+model. Model names are those of published and bundled weights (`taptr.weights.registry.WEIGHTS`,
+`taptr.weights.registry.BUNDLED`), so a new name in a table is covered without changing this file;
+preset names ("small", "tiny") are ordinary words too often to be read as claims.
 """
 
 from __future__ import annotations
@@ -17,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from taptr.hub import BUNDLED, DEFAULT_MODEL, FALLBACK_MODEL, MANUAL, WEIGHTS
+from taptr.weights.registry import BUNDLED, DEFAULT_MODEL, FALLBACK_MODEL, MANUAL, WEIGHTS
 
 REPO = Path(__file__).resolve().parents[1]
 PAGES = sorted(
@@ -149,7 +148,7 @@ def test_reader_pages_state_the_fallback_with_the_default(name):
 def test_help_and_the_fallback_line_name_the_chain():
     from taptr.cli.common.model_options import CHECKPOINT_HELP
     from taptr.cli.main import build_parser
-    from taptr.hub import fallback_notice
+    from taptr.weights.registry import fallback_notice
 
     for model in (DEFAULT_MODEL, FALLBACK_MODEL):
         assert model in CHECKPOINT_HELP

@@ -21,9 +21,9 @@ import pytest
 import torch
 
 import taptr
-from taptr import hub
-from taptr.checkpoint import save_checkpoint
-from taptr.drive_weights import ManualWeights, release_bytes
+from taptr.weights import registry
+from taptr.weights.checkpoint import save_checkpoint
+from taptr.weights.drive import ManualWeights, release_bytes
 from tests.fake_drive import FakeDrive
 
 pytest.importorskip("gdown")
@@ -57,7 +57,7 @@ def weights(monkeypatch, tmp_path) -> Path:
     monkeypatch.delenv("TAPTR_OFFLINE", raising=False)
     monkeypatch.setenv("TAPTR_DOWNLOAD_TIMEOUT", "3")
     monkeypatch.setenv("TAPTR_DOWNLOAD_MIN_RATE", "16M")
-    monkeypatch.setitem(hub.MANUAL, "tiny-drive", TINY)
+    monkeypatch.setitem(registry.MANUAL, "tiny-drive", TINY)
     folder = tmp_path / "weights"
     monkeypatch.setenv("TAPTR_WEIGHTS_DIR", str(folder))
     return folder
@@ -174,7 +174,7 @@ def test_a_stream_far_above_the_release_is_cut_at_the_bound(weights, serve, tiny
 
 
 def test_the_bounds_are_read_from_the_environment(monkeypatch):
-    from taptr import transfer
+    from taptr.weights import transfer
 
     monkeypatch.setenv("TAPTR_DOWNLOAD_MIN_RATE", "64K")
     assert transfer.least_rate() == 65536
@@ -237,7 +237,7 @@ def test_offline_the_message_is_whole_and_no_download_is_announced(
 
 
 def test_library_errors_are_shortened_at_a_word():
-    from taptr.transfer import short_reason
+    from taptr.weights.transfer import short_reason
 
     nested = "HTTPSConnectionPool(host='drive.google.com', port=443): " + "x" * 300
     shortened = short_reason(Exception(nested))

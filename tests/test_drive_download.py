@@ -2,8 +2,8 @@
 
 The fake (`tests.fake_drive`) answers as Drive does for a large file: a confirmation page
 first, the file at the address its form makes. ``TAPTR_DRIVE_URL`` (the testing hook of
-`taptr.drive`) points taptr at it. Nothing leaves the machine. Hostile servers (trickling,
-oversized, late) are in tests/test_download_bounds.py.
+`taptr.weights.drive_download`) points taptr at it. Nothing leaves the machine. Hostile
+servers (trickling, oversized, late) are in tests/test_download_bounds.py.
 """
 
 from __future__ import annotations
@@ -17,9 +17,9 @@ from pathlib import Path
 import pytest
 
 import taptr
-from taptr import drive, hub
-from taptr.checkpoint import CheckpointError
 from taptr.model.v3 import TAPTRv3
+from taptr.weights import drive_download, registry
+from taptr.weights.checkpoint import CheckpointError
 from tests.fake_drive import R18_ID, R50_ID, FakeDrive
 
 pytest.importorskip("gdown")
@@ -68,7 +68,7 @@ def test_taptrv3_downloads_once_through_the_confirmation_page(
     assert left_in(weights) == ["TAPTRv3_resnet18_384x512.pth"]  # no temporaries left
     assert (weights / "TAPTRv3_resnet18_384x512.pth").read_bytes() == fake.content
     # once: the folder answers from now on, without a request
-    assert hub.manual_path("taptrv3-official") == weights / "TAPTRv3_resnet18_384x512.pth"
+    assert registry.manual_path("taptrv3-official") == weights / "TAPTRv3_resnet18_384x512.pth"
     assert len(fake.requests) == 2
 
 
@@ -76,7 +76,7 @@ def test_a_file_served_without_confirmation_is_taken_as_it_comes(
     weights, serve, official_v3_checkpoint
 ):
     fake = serve(official_v3_checkpoint.read_bytes(), direct=True)
-    assert hub.download("taptrv3-official").read_bytes() == fake.content
+    assert registry.download("taptrv3-official").read_bytes() == fake.content
     assert fake.requests == ["/uc", "/uc"]  # asked once, then fetched by gdown
 
 
@@ -159,7 +159,7 @@ def test_unreachable_drive_is_said_at_once(weights, monkeypatch):
     started = time.perf_counter()
     with pytest.raises(FileNotFoundError, match="Drive could not be reached"):
         taptr.from_pretrained("taptrv3-official")
-    assert time.perf_counter() - started < drive.PROBE_TIMEOUT
+    assert time.perf_counter() - started < drive_download.PROBE_TIMEOUT
 
 
 def test_taptr_download_fetches_ahead_of_time(weights, serve, official_v3_checkpoint, capsys):
@@ -175,8 +175,10 @@ def test_taptr_download_fetches_ahead_of_time(weights, serve, official_v3_checkp
 
 
 def test_drive_links_give_their_file_ids():
-    assert drive.file_id(hub.MANUAL["taptrv3-official"].url) == R18_ID
-    assert drive.file_id(hub.MANUAL["taptrv3-r50-official"].url) == R50_ID
-    assert drive.file_id("https://drive.google.com/uc?export=download&id=abc-_1") == "abc-_1"
+    assert drive_download.file_id(registry.MANUAL["taptrv3-official"].url) == R18_ID
+    assert drive_download.file_id(registry.MANUAL["taptrv3-r50-official"].url) == R50_ID
+    assert (
+        drive_download.file_id("https://drive.google.com/uc?export=download&id=abc-_1") == "abc-_1"
+    )
     with pytest.raises(ValueError, match="not a Google Drive file link"):
-        drive.file_id("https://example.com/weights.pth")
+        drive_download.file_id("https://example.com/weights.pth")

@@ -28,7 +28,7 @@ def one_thread():
 def data(tmp_path_factory):
     """A CoTracker-layout root with a DAVIS pickle and a Kinetics shard, and a tiny model."""
     from taptr import build_model
-    from taptr.checkpoint import save_checkpoint
+    from taptr.weights.checkpoint import save_checkpoint
 
     root = tmp_path_factory.mktemp("tapvid")
     write_davis(

@@ -121,7 +121,7 @@ def _calibrate_threshold(tmp_path, sample, capsys):
     out = tmp_path / "calibrated.pth"
     argv = ["--checkpoint", "tiny", "--videos", "1", "--out", str(out)]
     assert _load("calibrate_threshold").main(argv) == 0
-    from taptr.checkpoint import read_visibility_threshold
+    from taptr.weights.checkpoint import read_visibility_threshold
 
     assert 0 < read_visibility_threshold(out) < 1
 

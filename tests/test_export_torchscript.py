@@ -7,7 +7,6 @@ import pytest
 import torch
 
 from taptr.api.predictor import Predictor
-from taptr.checkpoint import save_checkpoint
 from taptr.cli.main import main
 from taptr.config import tiny
 from taptr.data.sample_video import make_sample_clip
@@ -17,6 +16,7 @@ from taptr.export.graphs import _wrappers, export_model, prepare_for_export
 from taptr.export.manifest import GRAPHS, ExportManifest
 from taptr.export.track_video import track_video
 from taptr.export.verify import sample_frames, torch_tracks
+from taptr.weights.checkpoint import save_checkpoint
 from tests.helpers import decode_window_inputs
 from tests.test_export_runner import randomised
 

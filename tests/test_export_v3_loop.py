@@ -231,8 +231,8 @@ def test_stream_errors(model):
 
 
 def test_command_refuses_torchscript_and_a_history_of_one(model, tmp_path, capsys):
-    from taptr.checkpoint import save_checkpoint
     from taptr.cli.main import main
+    from taptr.weights.checkpoint import save_checkpoint
 
     checkpoint = str(save_checkpoint(model, tmp_path / "v3.pth"))
     base = ["export", "--checkpoint", checkpoint, "--out", str(tmp_path / "out")]

@@ -18,14 +18,6 @@ import pytest
 import torch
 
 import taptr
-from taptr.checkpoint import (
-    CheckpointError,
-    UnsafeCheckpointError,
-    load_checkpoint,
-    read_file,
-    read_visibility_threshold,
-    save_checkpoint,
-)
 from taptr.cli.main import main
 from taptr.data.check import check_kubric_folder
 from taptr.data.kubric import read_sequence, write_sequence
@@ -35,6 +27,14 @@ from taptr.io.safe_npy import load_npy
 from taptr.io.safe_pickle import PickleBombError, UnsafePickleError, load_pickle
 from taptr.io.video import read_video, write_video
 from taptr.types import TrackingSample
+from taptr.weights.checkpoint import (
+    CheckpointError,
+    UnsafeCheckpointError,
+    load_checkpoint,
+    read_file,
+    read_visibility_threshold,
+    save_checkpoint,
+)
 from tests import bombs
 
 
@@ -261,7 +261,7 @@ def _write(path, data: bytes):
 def _tiny_checkpoint(tmp_path, name="tiny.pth", **changes):
     torch.manual_seed(0)
     model = taptr.build_model("tiny")
-    data = taptr.checkpoint.checkpoint_dict(model)
+    data = taptr.weights.checkpoint.checkpoint_dict(model)
     data.update(changes)
     path = tmp_path / name
     torch.save(data, path)
@@ -313,9 +313,9 @@ def test_config_is_validated_and_weights_checked_before_building(tmp_path, monke
     path = tmp_path / "huge.pth"
     torch.save(dict(data, config=huge), path)
     devices = []
-    real_build = taptr.checkpoint.build_model
+    real_build = taptr.weights.checkpoint.build_model
     monkeypatch.setattr(
-        taptr.checkpoint,
+        taptr.weights.checkpoint,
         "build_model",
         lambda config: devices.append(str(torch.get_default_device())) or real_build(config),
     )

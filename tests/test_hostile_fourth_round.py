@@ -185,7 +185,7 @@ def test_the_offline_fallback_does_not_wait_for_a_resolver(monkeypatch, tmp_path
     pytest.importorskip("huggingface_hub")
     from huggingface_hub import constants
 
-    from taptr import hub
+    from taptr.weights import registry
 
     monkeypatch.setenv("HF_HUB_OFFLINE", "0")
     monkeypatch.setattr(constants, "HF_HUB_OFFLINE", False)
@@ -206,12 +206,12 @@ def test_the_offline_fallback_does_not_wait_for_a_resolver(monkeypatch, tmp_path
 
     monkeypatch.setattr(socket, "getaddrinfo", getaddrinfo)
     started = time.perf_counter()
-    hub.load_model("taptr-small-synthetic")  # what naming the bundled model costs here
+    registry.load_model("taptr-small-synthetic")  # what naming the bundled model costs here
     named = time.perf_counter() - started
     started = time.perf_counter()
     try:
         with caplog.at_level(logging.WARNING):
-            choice = hub.load_model(None, cache_dir=tmp_path / "cache")
+            choice = registry.load_model(None, cache_dir=tmp_path / "cache")
     finally:
         released.set()
     assert time.perf_counter() - started < named + bound + 3.0  # the bound, and some slack

@@ -23,10 +23,10 @@ import numpy as np
 import pytest
 import torch
 
-from taptr.checkpoint import CheckpointError, load_checkpoint
 from taptr.cli.main import main
 from taptr.io import limits
 from taptr.io.video import iter_frames, read_video, video_info, write_video
+from taptr.weights.checkpoint import CheckpointError, load_checkpoint
 from tests import bombs
 
 
@@ -212,7 +212,7 @@ def test_zero_stride_view_is_refused_by_its_logical_size(tmp_path, monkeypatch):
 
 def test_finiteness_check_never_materialises_more_than_a_storage(tmp_path, monkeypatch):
     from taptr import build_model
-    from taptr.checkpoint import checkpoint_dict
+    from taptr.weights.checkpoint import checkpoint_dict
 
     data = checkpoint_dict(build_model("tiny"))
     key = next(k for k, v in data["model"].items() if v.dim() == 4)
@@ -242,7 +242,7 @@ def test_config_nested_100000_deep_is_a_one_line_checkpoint_error(tmp_path):
 
 def test_config_value_nested_a_few_levels_or_too_long_is_named(tmp_path):
     from taptr import build_model
-    from taptr.checkpoint import checkpoint_dict
+    from taptr.weights.checkpoint import checkpoint_dict
 
     data = checkpoint_dict(build_model("tiny"))
     for value, message in (([[[[1]]]], "nested more than 3"), (list(range(10_000)), "values")):

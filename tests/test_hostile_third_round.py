@@ -308,7 +308,7 @@ def test_out_dangling_symlink_is_named(tmp_path, clip, capsys):
 
 
 def test_empty_checkpoint_says_it_is_empty(tmp_path):
-    from taptr.checkpoint import CheckpointError, load_checkpoint
+    from taptr.weights.checkpoint import CheckpointError, load_checkpoint
 
     path = tmp_path / "taptrv2.pth"
     path.write_bytes(b"")
@@ -317,7 +317,7 @@ def test_empty_checkpoint_says_it_is_empty(tmp_path):
 
 
 def test_text_file_as_checkpoint_is_not_a_pytorch_checkpoint(tmp_path):
-    from taptr.checkpoint import CheckpointError, load_checkpoint
+    from taptr.weights.checkpoint import CheckpointError, load_checkpoint
 
     path = tmp_path / "passwd"
     path.write_text("root:x:0:0:root:/root:/bin/bash\ndaemon:x:1:1::/usr/sbin:/bin/false\n")

@@ -17,9 +17,9 @@ import pytest
 import torch
 
 import taptr
-from taptr import hub
-from taptr.checkpoint import CheckpointError, save_checkpoint
 from taptr.config import PRESETS
+from taptr.weights import registry
+from taptr.weights.checkpoint import CheckpointError, save_checkpoint
 
 pytest.importorskip("huggingface_hub")
 
@@ -62,21 +62,21 @@ def cached_taptrv2(offline, official_checkpoint) -> Path:
 
 def test_registry_names():
     assert {"taptrv2-official", "taptrv1-official", "taptr-small-synthetic"} <= set(
-        hub.known_names()
+        registry.known_names()
     )
-    assert set(PRESETS) <= set(hub.known_names())
-    entry = hub.WEIGHTS["taptrv2-official"]
+    assert set(PRESETS) <= set(registry.known_names())
+    entry = registry.WEIGHTS["taptrv2-official"]
     assert (entry.repo_id, entry.filename, entry.preset) == (
         "HYeungLee/TAPTR-Series",
         "taptrv2.pth",
         "taptrv2",
     )
     assert entry.url == "https://huggingface.co/HYeungLee/TAPTR-Series/resolve/main/taptrv2.pth"
-    assert hub.WEIGHTS["taptrv1-official"].filename == "taptrv1.pth"
+    assert registry.WEIGHTS["taptrv1-official"].filename == "taptrv1.pth"
 
 
 def test_cached_weights_resolve_offline(offline, cached_taptrv2, official_state_dict):
-    assert hub.weights_path("taptrv2-official", cache_dir=offline) == cached_taptrv2
+    assert registry.weights_path("taptrv2-official", cache_dir=offline) == cached_taptrv2
     model = taptr.from_pretrained("taptrv2-official", cache_dir=offline)
     assert not model.training and model.config.d_model == 256
     torch.testing.assert_close(
@@ -117,24 +117,24 @@ def test_missing_weights_say_what_to_download_and_where(offline):
 
 
 def test_sha256_is_checked_when_registered(offline, cached_taptrv2, monkeypatch):
-    entry = hub.WEIGHTS["taptrv2-official"]
-    good = hub.file_sha256(cached_taptrv2)
+    entry = registry.WEIGHTS["taptrv2-official"]
+    good = registry.file_sha256(cached_taptrv2)
     monkeypatch.setitem(
-        hub.WEIGHTS, "taptrv2-official", entry.__class__(**{**vars(entry), "sha256": good})
+        registry.WEIGHTS, "taptrv2-official", entry.__class__(**{**vars(entry), "sha256": good})
     )
-    assert hub.weights_path("taptrv2-official", cache_dir=offline) == cached_taptrv2
+    assert registry.weights_path("taptrv2-official", cache_dir=offline) == cached_taptrv2
     monkeypatch.setitem(
-        hub.WEIGHTS, "taptrv2-official", entry.__class__(**{**vars(entry), "sha256": "0" * 64})
+        registry.WEIGHTS, "taptrv2-official", entry.__class__(**{**vars(entry), "sha256": "0" * 64})
     )
     with pytest.raises(CheckpointError, match="SHA-256"):
-        hub.weights_path("taptrv2-official", cache_dir=offline)
+        registry.weights_path("taptrv2-official", cache_dir=offline)
 
 
 def test_taptrv1_resolves_its_file_and_a_bad_one_is_moved_aside(offline, caplog):
     path = place_in_cache(offline, "HYeungLee/TAPTR-Series", "taptrv1.pth")
     path.write_bytes(b"not the weights: cut short")
     with caplog.at_level(logging.WARNING), pytest.raises(FileNotFoundError, match=r"taptrv1\.pth"):
-        hub.weights_path("taptrv1-official", cache_dir=offline)
+        registry.weights_path("taptrv1-official", cache_dir=offline)
     aside = path.with_name("taptrv1.pth.rejected")
     assert not path.exists() and aside.read_bytes() == b"not the weights: cut short"
     lines = [r.getMessage() for r in caplog.records if "moved aside" in r.getMessage()]
@@ -159,11 +159,11 @@ def test_taptrv1_without_its_preset_is_not_supported_yet(offline, monkeypatch):
 
 def test_paths_and_presets_still_resolve(tmp_path, tiny_model, caplog):
     path = save_checkpoint(tiny_model, tmp_path / "model.pth")
-    assert hub.resolve_model(path).config.d_model == 32
-    assert hub.resolve_model("tiny").config.d_model == 32
+    assert registry.resolve_model(path).config.d_model == 32
+    assert registry.resolve_model("tiny").config.d_model == 32
     assert "UNTRAINED" in caplog.text
     with pytest.raises(FileNotFoundError, match="taptrv2-official"):
-        hub.resolve_model("no-such-model")
+        registry.resolve_model("no-such-model")
 
 
 def test_offline_flag_is_read_at_call_time(monkeypatch):
@@ -171,6 +171,6 @@ def test_offline_flag_is_read_at_call_time(monkeypatch):
     from huggingface_hub import constants
 
     monkeypatch.setattr(constants, "HF_HUB_OFFLINE", False)
-    assert not hub.hub_offline()
+    assert not registry.hub_offline()
     monkeypatch.setenv("HF_HUB_OFFLINE", "yes")
-    assert hub.hub_offline()
+    assert registry.hub_offline()

@@ -19,8 +19,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from taptr import hub
-from taptr.checkpoint import CheckpointError, save_checkpoint
+from taptr.weights import registry
+from taptr.weights.checkpoint import CheckpointError, save_checkpoint
 
 pytest.importorskip("huggingface_hub")
 
@@ -129,8 +129,8 @@ def test_default_downloads_once_then_reads_the_cache_and_works_offline(
 ):
     fake = serve(monkeypatch, official_checkpoint.read_bytes())
     try:
-        with caplog.at_level(logging.WARNING, logger="taptr.hub"):
-            choice = hub.load_model(None, cache_dir=online)
+        with caplog.at_level(logging.WARNING, logger="taptr.weights.registry"):
+            choice = registry.load_model(None, cache_dir=online)
         assert (choice.name, choice.notice) == ("taptrv2-official", None)
         assert choice.model.config.d_model == 256 and not choice.model.training
         assert fake.requests.count("GET") == 1
@@ -138,13 +138,13 @@ def test_default_downloads_once_then_reads_the_cache_and_works_offline(
         assert choice.path is not None and online in choice.path.parents
         # second call: the cache answers, no request at all
         before = len(fake.requests)
-        assert hub.weights_path("taptrv2-official", cache_dir=online) == choice.path
+        assert registry.weights_path("taptrv2-official", cache_dir=online) == choice.path
         assert len(fake.requests) == before
     finally:
         fake.close()
     # offline, with the server gone: the cache only
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")
-    assert hub.weights_path("taptrv2-official", cache_dir=online) == choice.path
+    assert registry.weights_path("taptrv2-official", cache_dir=online) == choice.path
 
 
 def test_corrupt_download_is_rejected_and_removed(online, monkeypatch, tiny_model, tmp_path):
@@ -152,10 +152,10 @@ def test_corrupt_download_is_rejected_and_removed(online, monkeypatch, tiny_mode
     fake = serve(monkeypatch, good[:-100] + b"x" * 100, etag=hashlib.sha256(good).hexdigest())
     try:
         with pytest.raises(CheckpointError, match="corrupt"):
-            hub.weights_path("taptrv2-official", cache_dir=online)
+            registry.weights_path("taptrv2-official", cache_dir=online)
         assert not any(p.is_file() for p in online.rglob("taptrv2.pth"))
         # the default falls back instead, and says why
-        choice = hub.load_model(None, cache_dir=online)
+        choice = registry.load_model(None, cache_dir=online)
         assert choice.name == "taptr-small-synthetic" and "corrupt" in choice.notice
     finally:
         fake.close()
@@ -168,8 +168,8 @@ def test_unreachable_hub_falls_back_at_once_with_one_warning(online, monkeypatch
     monkeypatch.setenv("HF_ENDPOINT", f"http://127.0.0.1:{port}")
     started = time.perf_counter()
     with caplog.at_level(logging.WARNING):
-        choice = hub.load_model(None, cache_dir=online)
-    assert time.perf_counter() - started < hub.PROBE_TIMEOUT  # one attempt, no retry storm
+        choice = registry.load_model(None, cache_dir=online)
+    assert time.perf_counter() - started < registry.PROBE_TIMEOUT  # one attempt, no retry storm
     assert choice.name == "taptr-small-synthetic" and choice.model.config.d_model == 64
     warnings = [r for r in caplog.records if r.levelno >= logging.WARNING]
     assert len(warnings) == 1 and warnings[0].getMessage() == choice.notice
@@ -182,7 +182,7 @@ def test_unreachable_hub_falls_back_at_once_with_one_warning(online, monkeypatch
 def test_offline_without_cache_falls_back_and_names_the_reason(monkeypatch, caplog):
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")
     with caplog.at_level(logging.WARNING):
-        choice = hub.load_model(None)
+        choice = registry.load_model(None)
     assert choice.name == "taptr-small-synthetic"
     assert "HF_HUB_OFFLINE=1" in choice.notice
     # huggingface_hub is installed here: the hint does not ask to install it again
@@ -194,14 +194,14 @@ def test_missing_huggingface_hub_falls_back(monkeypatch):
     import sys
 
     monkeypatch.setitem(sys.modules, "huggingface_hub", None)
-    choice = hub.load_model(None)
+    choice = registry.load_model(None)
     assert "huggingface_hub is not installed" in choice.notice
     assert "pip install 'taptr[hub]' && hf download" in choice.notice
 
 
 def test_an_explicit_choice_says_nothing(caplog):
     with caplog.at_level(logging.WARNING):
-        choice = hub.load_model("taptr-small-synthetic")
+        choice = registry.load_model("taptr-small-synthetic")
     assert choice.notice is None and not caplog.records
 
 
@@ -239,7 +239,7 @@ def test_a_hub_declaring_far_more_than_the_release_is_refused_before_the_transfe
     fake = serve(monkeypatch, official_checkpoint.read_bytes(), declared=2 * 1024**3)
     try:
         with pytest.raises(FileNotFoundError) as raised:
-            hub.weights_path("taptrv2-official", cache_dir=online)
+            registry.weights_path("taptrv2-official", cache_dir=online)
     finally:
         fake.close()
     message = str(raised.value)
@@ -248,7 +248,7 @@ def test_a_hub_declaring_far_more_than_the_release_is_refused_before_the_transfe
     # the default falls back at once and says why
     fake = serve(monkeypatch, official_checkpoint.read_bytes(), declared=2 * 1024**3)
     try:
-        choice = hub.load_model(None, cache_dir=online)
+        choice = registry.load_model(None, cache_dir=online)
     finally:
         fake.close()
     assert choice.name == "taptr-small-synthetic" and "the download was refused" in choice.notice
@@ -261,7 +261,7 @@ def test_a_trickling_hub_is_stopped_by_the_least_rate(online, monkeypatch, offic
     started = time.perf_counter()
     try:
         with pytest.raises(FileNotFoundError) as raised:
-            hub.weights_path("taptrv2-official", cache_dir=online)
+            registry.weights_path("taptrv2-official", cache_dir=online)
     finally:
         fake.close()
     assert time.perf_counter() - started < 4.0

@@ -7,10 +7,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from taptr import hub
 from taptr.api.predictor import Predictor
-from taptr.checkpoint import save_checkpoint
 from taptr.config import PRESETS
+from taptr.weights import registry
+from taptr.weights.checkpoint import save_checkpoint
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -37,7 +37,7 @@ def test_entry_points():
 
 def test_bundled_model_loads_from_the_local_repository(tmp_path, tiny_model, monkeypatch):
     weights = save_checkpoint(tiny_model, tmp_path / "taptr-small-synthetic.pth")
-    monkeypatch.setattr(hub, "bundled_path", lambda name: weights)
+    monkeypatch.setattr(registry, "bundled_path", lambda name: weights)
     predictor = torch.hub.load(str(ROOT), "taptr_small_synthetic", source="local", device="cpu")
     assert isinstance(predictor, Predictor)
     assert predictor.device == torch.device("cpu")

@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 
 import taptr
-from taptr import hub
-from taptr.checkpoint import CheckpointError, save_checkpoint
-from taptr.checkpoint_identity import architecture_problem, describe, same_architecture
 from taptr.config import get_config
+from taptr.weights import registry
+from taptr.weights.checkpoint import CheckpointError, save_checkpoint
+from taptr.weights.identity import architecture_problem, describe, same_architecture
 
 R18_FILE = "TAPTRv3_resnet18_384x512.pth"
 R50_FILE = "TAPTRv3_resnet50_512x512.pth"
@@ -68,7 +68,7 @@ def test_the_same_architecture_with_other_settings_is_accepted():
 
 
 def test_every_named_weights_entry_names_a_known_architecture():
-    for entry in [*hub.WEIGHTS.values(), *hub.MANUAL.values()]:
+    for entry in [*registry.WEIGHTS.values(), *registry.MANUAL.values()]:
         if entry.preset in taptr.config.PRESETS:
             assert describe(get_config(entry.preset)).startswith("TAPTR")
 
@@ -83,4 +83,6 @@ def test_settings_record_the_sha256_of_named_weights(tmp_path):
     assert main([*argv, "--out", str(out)]) == 0
     recorded = json.loads((out / "settings.json").read_text())
     assert recorded["model"] == "taptr-small-synthetic"
-    assert recorded["model_sha256"] == hub.file_sha256(hub.bundled_path("taptr-small-synthetic"))
+    assert recorded["model_sha256"] == registry.file_sha256(
+        registry.bundled_path("taptr-small-synthetic")
+    )

@@ -124,7 +124,7 @@ def test_from_pretrained_preset_and_missing_name(caplog):
 
 
 def test_from_pretrained_checkpoint_path(tmp_path):
-    from taptr.checkpoint import save_checkpoint
+    from taptr.weights.checkpoint import save_checkpoint
 
     model = taptr.build_model("tiny")
     path = save_checkpoint(model, tmp_path / "tiny.pth")

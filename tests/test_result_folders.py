@@ -206,7 +206,7 @@ def test_out_dot_needs_only_the_folder_itself(clip, tmp_path, monkeypatch):
 
 def test_convert_cleans_a_stale_temporary(tmp_path, capsys):
     from taptr import build_model
-    from taptr.checkpoint import save_checkpoint
+    from taptr.weights.checkpoint import save_checkpoint
 
     save_checkpoint(build_model("tiny"), tmp_path / "src.pth")
     leftover = tmp_path / f".dst.{_dead_pid()}-abcd1234.tmp.pth"

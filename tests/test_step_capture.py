@@ -259,9 +259,9 @@ def test_a_cpu_in_bfloat16_keeps_the_eager_step():
 def test_taptr_track_capture_on_writes_the_eager_tracks(eager_backend, tmp_path):
     from torch._dynamo.utils import counters
 
-    from taptr.checkpoint import save_checkpoint
     from taptr.cli.main import main
     from taptr.io.video import write_video
+    from taptr.weights.checkpoint import save_checkpoint
 
     torch.manual_seed(0)
     weights = save_checkpoint(build_model("tiny-v3"), tmp_path / "tiny_v3.pth")

@@ -11,12 +11,12 @@ import torch
 import taptr
 from taptr.api.online import OnlineTracker
 from taptr.api.support import grid_positions, local_offsets, with_support
-from taptr.checkpoint import CheckpointError, checkpoint_contents
 from taptr.model.sliding_window import run_windows
 from taptr.model.trajectory import QuerySet
 from taptr.model.v3 import TAPTRv3, per_frame
 from taptr.model.v3.history import History, frame_weights
 from taptr.runtime.frames import EncodedFrames
+from taptr.weights.checkpoint import CheckpointError, checkpoint_contents
 from tests.helpers import generated_official_weights, load_golden, noise_video
 
 

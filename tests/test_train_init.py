@@ -9,12 +9,12 @@ import torch
 from torchvision.models import resnet50
 
 import taptr
-from taptr.checkpoint import CheckpointError
 from taptr.cli.main import main as cli_main
 from taptr.official.convert import convert_state_dict
 from taptr.train import data_parallel, loop
 from taptr.train.config import load_config
 from taptr.train.initialise import RESNET50_IMAGENET_FILE, init_backbone, init_from_checkpoint
+from taptr.weights.checkpoint import CheckpointError
 
 
 @pytest.fixture(scope="module")
@@ -101,7 +101,7 @@ def test_train_command_errors_are_one_line(tmp_path, capsys):
 
 
 def test_init_from_builds_no_second_model(tmp_path, monkeypatch):
-    import taptr.checkpoint as checkpoint_module
+    import taptr.weights.checkpoint as checkpoint_module
 
     torch.manual_seed(6)
     source = taptr.build_model("tiny")

@@ -11,9 +11,9 @@ __version__ = "0.1.0"
 
 _EXPORTS = {
     "build_model": "taptr.model.build",
-    "from_pretrained": "taptr.hub",
-    "load_checkpoint": "taptr.checkpoint",
-    "save_checkpoint": "taptr.checkpoint",
+    "from_pretrained": "taptr.weights.registry",
+    "load_checkpoint": "taptr.weights.checkpoint",
+    "save_checkpoint": "taptr.weights.checkpoint",
     "official_forward": "taptr.official.model_forward",
     "ModelConfig": "taptr.config",
     "BackboneConfig": "taptr.config",

@@ -116,7 +116,7 @@ def file_digest(path: str | os.PathLike[str] | None) -> str | None:
 
 @functools.lru_cache(maxsize=16)
 def _digest(path: str, size: int, mtime_ns: int) -> str:
-    """`taptr.hub.file_sha256`, remembered by path, size and modification time."""
-    from taptr.hub import file_sha256
+    """`taptr.weights.registry.file_sha256`, remembered by path, size and modification time."""
+    from taptr.weights.registry import file_sha256
 
     return file_sha256(path)

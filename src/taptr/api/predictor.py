@@ -199,7 +199,7 @@ class Predictor:
         ``notice``). Without an explicit ``visibility_threshold``,
         a threshold stored in the file by ``taptr calibrate`` is used (0.5 when there is none).
         """
-        from taptr.hub import load_model
+        from taptr.weights.registry import load_model
 
         choice = load_model(name_or_path)
         if "visibility_threshold" not in kwargs and choice.visibility_threshold is not None:

@@ -21,7 +21,7 @@ class ModelSpec:
 
     Attributes:
         checkpoint: a checkpoint file or model name; None: the default model
-            (`taptr.hub.DEFAULT_MODEL`, else the bundled one with a warning).
+            (`taptr.weights.registry.DEFAULT_MODEL`, else the bundled one with a warning).
         device: ``cpu``, ``cuda``, ``cuda:N``, ``mps``; None: the best this machine has.
         dtype: the precision of the model's products: ``float32`` (no autocast),
             ``bfloat16`` or ``float16`` (autocast, weights kept in float32).

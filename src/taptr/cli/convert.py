@@ -28,7 +28,7 @@ def run(args: argparse.Namespace) -> int:
     if kind(args.src, "checkpoint") is None:
         raise FileNotFoundError(f"checkpoint not found: {args.src}")
     require_file(args.src, "checkpoint")  # a folder, FIFO or device is named as such
-    from taptr.checkpoint import load_checkpoint, read_visibility_threshold, save_checkpoint
+    from taptr.weights.checkpoint import load_checkpoint, read_visibility_threshold, save_checkpoint
 
     model = load_checkpoint(args.src)
     threshold = read_visibility_threshold(args.src)  # a calibrated threshold travels along

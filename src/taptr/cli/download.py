@@ -23,8 +23,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Fetches each named file and prints where it is."""
-    from taptr import hub
+    from taptr.weights import registry
 
     for name in args.names:
-        print(f"{name}: {hub.download(name)}")
+        print(f"{name}: {registry.download(name)}")
     return 0

@@ -89,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
     from taptr.export.v3_manifest import GRAPHS as V3_GRAPHS
     from taptr.export.v3_manifest import V3Manifest
     from taptr.export.verify import compare
-    from taptr.hub import resolve_model
+    from taptr.weights.registry import resolve_model
 
     if args.threads:
         torch.set_num_threads(args.threads)

@@ -62,7 +62,9 @@ def _config(args: argparse.Namespace) -> TrainConfig:
     if args.config:
         base = read_config_file(args.config)
     elif args.resume:
-        from taptr.checkpoint import read_file  # torch: only to read the checkpoint's config
+        from taptr.weights.checkpoint import (
+            read_file,  # torch: only to read the checkpoint's config
+        )
 
         data = read_file(args.resume)
         base = data.get("train_config") if isinstance(data, dict) else None

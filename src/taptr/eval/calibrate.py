@@ -233,17 +233,18 @@ def write_calibrated(
     """Writes a taptr checkpoint holding ``threshold`` under ``"visibility_threshold"``.
 
     A taptr-format file is copied whole (EMA and training state included) with the entry
-    added or replaced; anything else that `taptr.hub.resolve_model` loads (the authors'
+    added or replaced; anything else that `taptr.weights.registry.resolve_model` loads (the authors'
     release, a bundled or preset name) is written in taptr's format.
 
     Args:
-        source: checkpoint file or model name (None: the default model, `taptr.hub.DEFAULT_MODEL`).
+        source: checkpoint file or model name (None: the default model,
+            `taptr.weights.registry.DEFAULT_MODEL`).
         destination: the file to write (atomically); may equal ``source`` when that is a
             taptr checkpoint (another file, such as the authors' release, is never replaced).
         threshold: the calibrated threshold, in (0, 1).
     """
-    from taptr.checkpoint import FORMAT, read_file, save_checkpoint
-    from taptr.hub import resolve_model
+    from taptr.weights.checkpoint import FORMAT, read_file, save_checkpoint
+    from taptr.weights.registry import resolve_model
 
     if not 0 < threshold < 1:
         raise ValueError(f"threshold must lie in (0, 1), got {threshold}")

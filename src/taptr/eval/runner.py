@@ -109,7 +109,7 @@ def build_protocol(config: EvalConfig, device: str) -> EvalProtocol:
     """The protocol and tracker ``config`` names, with the model (if any) on ``device``."""
     if config.protocol == "official":
         from taptr.eval.official_protocol import OfficialTAPTR
-        from taptr.hub import resolve_model
+        from taptr.weights.registry import resolve_model
 
         assert config.checkpoint is not None  # checked by EvalConfig
         return OfficialProtocol(OfficialTAPTR(resolve_model(config.checkpoint), device=device))

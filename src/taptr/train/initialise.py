@@ -13,8 +13,8 @@ from pathlib import Path
 
 import torch
 
-from taptr.checkpoint import load_weights, read_checkpoint, read_file
 from taptr.model.taptr import TAPTR
+from taptr.weights.checkpoint import load_weights, read_checkpoint, read_file
 
 logger = logging.getLogger(__name__)
 
@@ -78,7 +78,7 @@ def init_from_checkpoint(model: TAPTR, path: str, parts: tuple[str, ...] = ()) -
             whole and strictly; the rest keeps its fresh weights. Empty: everything.
 
     Raises:
-        taptr.checkpoint.CheckpointError: the checkpoint's model (or part) does not match,
+        taptr.weights.checkpoint.CheckpointError: the checkpoint's model (or part) does not match,
             with the missing, unexpected and mis-shaped keys listed.
     """
     _, weights = read_checkpoint(path)

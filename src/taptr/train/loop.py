@@ -23,7 +23,6 @@ from pathlib import Path
 import torch
 from torch import nn, optim
 
-from taptr.checkpoint import save_checkpoint
 from taptr.data.kubric import list_sequences
 from taptr.data.sampling import ClipBatch
 from taptr.io.atomic import atomic_path
@@ -55,6 +54,7 @@ from taptr.train.run_state import (
     save_training_checkpoint,
 )
 from taptr.train.validate import evaluate
+from taptr.weights.checkpoint import save_checkpoint
 
 logger = logging.getLogger(__name__)
 

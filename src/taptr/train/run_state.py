@@ -1,6 +1,6 @@
 """Training checkpoints: the full state of a run, written atomically, resumed exactly.
 
-A training checkpoint is taptr's checkpoint format (`taptr.checkpoint`: ``format``,
+A training checkpoint is taptr's checkpoint format (`taptr.weights.checkpoint`: ``format``,
 ``version``, ``config``, ``model``, ``ema``) plus the entries a resumed run needs:
 ``train_config``, ``optimizer``, ``scheduler``, ``scaler``, ``step`` and ``rng`` (every
 process's torch generator states). `taptr.load_checkpoint` therefore loads one directly,
@@ -17,11 +17,11 @@ from typing import Any
 import torch
 from torch import optim
 
-from taptr.checkpoint import CheckpointError, checkpoint_dict, read_file
 from taptr.io.atomic import atomic_path
 from taptr.model.taptr import TAPTR
 from taptr.train.config import TrainConfig
 from taptr.train.ema import ModelEMA
+from taptr.weights.checkpoint import CheckpointError, checkpoint_dict, read_file
 
 logger = logging.getLogger(__name__)
 

@@ -28,7 +28,7 @@ CHECKPOINT_HELP = (
     "License 1.0, non-commercial, from the Hugging Face cache or downloaded once; without "
     "them, the bundled taptr-small-synthetic, Apache-2.0, with a warning)"
 )
-"""Help of every ``--checkpoint`` option that loads a model (`taptr.hub.DEFAULT_MODEL`)."""
+"""Help of every ``--checkpoint`` option that loads a model (`registry.DEFAULT_MODEL`)."""
 
 CHECKPOINT_SUFFIXES = (".pth", ".pt", ".ckpt", ".bin", ".tar", ".pkl", ".safetensors")
 """File suffixes that make a missing ``--checkpoint`` a missing file rather than a name."""

@@ -27,16 +27,6 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from taptr.checkpoint_guards import (
-    CheckpointError,
-    UnsafeCheckpointError,
-    all_finite,
-    config_shape_problem,
-    key_name,
-    named_failures,
-    short_repr,
-)
-from taptr.checkpoint_identity import architecture_problem
 from taptr.config import ModelConfig
 from taptr.io import limits
 from taptr.io.atomic import atomic_path
@@ -52,6 +42,16 @@ from taptr.official.convert import (
     official_config,
     official_weights,
 )
+from taptr.weights.guards import (
+    CheckpointError,
+    UnsafeCheckpointError,
+    all_finite,
+    config_shape_problem,
+    key_name,
+    named_failures,
+    short_repr,
+)
+from taptr.weights.identity import architecture_problem
 
 FORMAT = "taptr"
 VERSION = 1
@@ -227,7 +227,7 @@ def load_weights(model: nn.Module, state_dict: Mapping[str, Tensor], source: str
 def _config(data: Any, source: str) -> ModelConfig:
     """The checkpoint's model config, validated (types and ranges) before any module exists.
 
-    Its shape is bounded first (`taptr.checkpoint_guards.config_shape_problem`): the range
+    Its shape is bounded first (`taptr.weights.guards.config_shape_problem`): the range
     checks print the values they refuse.
     """
     if not isinstance(data, Mapping):
@@ -348,7 +348,7 @@ def load_checkpoint_and_threshold(
         path: the checkpoint file.
         device: where to put the model.
         expected: for named weights, (name, preset): a file of another architecture
-            is refused before any module is built (`taptr.checkpoint_identity`).
+            is refused before any module is built (`taptr.weights.identity`).
     """
     with named_failures(path):
         checkpoint = _read_mapping(path)

@@ -9,12 +9,11 @@ this order:
    (``HF_HUB_OFFLINE=1``) never touches the network, and a download is checked against a
    SHA-256 (the registry's when set, else the Hub's own for large files);
 3. the name of weights the authors host on Google Drive (`MANUAL`: TAPTRv3's two
-   checkpoints, `taptr.drive_weights`): read from the weights folder
-   (``TAPTR_WEIGHTS_DIR``, default ``~/.cache/taptr/weights``);
-   when missing, downloaded once into it through ``gdown`` (``pip install 'taptr[drive]'``,
-   `taptr.drive`) after a one-line notice of their licence, and checked before they are
-   kept; without gdown or network, one message with the link, the licence and where to
-   put the file;
+   checkpoints, `taptr.weights.drive`): read from the weights folder (``TAPTR_WEIGHTS_DIR``, default
+   ``~/.cache/taptr/weights``); when missing, downloaded once into it through ``gdown`` (``pip
+   install 'taptr[drive]'``, `taptr.weights.drive_download`) after a one-line notice of their
+   licence, and checked before they are kept; without gdown or network, one message with the link,
+   the licence and where to put the file;
 4. the name of weights that ship inside the package (`BUNDLED`);
 5. a preset name: the architecture with freshly initialised, untrained weights (a warning
    says so).
@@ -25,9 +24,9 @@ downloaded once (after a one-line notice of their licence); when they cannot be 
 corrupt download), the bundled `FALLBACK_MODEL` with one warning line saying what to expect
 and how to get the paper's weights. A single attempt: no retries.
 
-Every file is read by the strict, safe loader (`taptr.checkpoint.load_checkpoint`); a file
+Every file is read by the strict, safe loader (`taptr.weights.checkpoint.load_checkpoint`); a file
 under the name of published or Drive weights must hold the architecture that name promises
-(`taptr.checkpoint_identity`): another model's weights are refused with what they are.
+(`taptr.weights.identity`): another model's weights are refused with what they are.
 Nothing is downloaded at import. ``HF_ENDPOINT`` and ``HF_HUB_OFFLINE`` are read at call time.
 """
 
@@ -43,10 +42,12 @@ from typing import NamedTuple
 
 import torch
 
-from taptr.checkpoint import CheckpointError, load_checkpoint_and_threshold
 from taptr.config import PRESETS
-from taptr.drive_weights import MANUAL, check_download, manual_path
-from taptr.hub_weights import (  # noqa: F401 (re-exported: taptr.hub is their home for callers)
+from taptr.model.build import build_model
+from taptr.model.taptr import TAPTR
+from taptr.weights.checkpoint import CheckpointError, load_checkpoint_and_threshold
+from taptr.weights.drive import MANUAL, check_download, manual_path
+from taptr.weights.hub import (  # noqa: F401 (re-exported: taptr.weights.registry is their home for callers)
     PROBE_TIMEOUT,
     WEIGHTS,
     HubWeights,
@@ -54,8 +55,6 @@ from taptr.hub_weights import (  # noqa: F401 (re-exported: taptr.hub is their h
     hub_offline,
     weights_path,
 )
-from taptr.model.build import build_model
-from taptr.model.taptr import TAPTR
 
 logger = logging.getLogger(__name__)
 

@@ -1,15 +1,14 @@
 """TAPTRv3's weights on Google Drive: where they are, where they go, how a file is checked.
 
-`MANUAL` names the authors' two TAPTRv3 checkpoints. `manual_path` reads one from the
-weights folder (`weights_dir`, ``TAPTR_WEIGHTS_DIR``) and, when it is missing, downloads it
-there once through `taptr.drive` after a one-line notice of its licence (said once Drive
-answered); without gdown, offline or when Drive refuses, one message gives the link, the
-licence and where to put the file. A file already there that cannot be the weights (a web
-page, or a size no release of them has: `release_bytes`) is moved aside (`set_aside`, to
-``NAME.rejected``) with one line saying so, and fetched again. `check_download` is the
-check of any named file taptr fetched (from Drive or the Hugging Face Hub): not a web page,
-of a size a release can have, and the architecture its name promises
-(`taptr.checkpoint_identity`).
+`MANUAL` names the authors' two TAPTRv3 checkpoints. `manual_path` reads one from the weights folder
+(`weights_dir`, ``TAPTR_WEIGHTS_DIR``) and, when it is missing, downloads it there once through
+`taptr.weights.drive_download` after a one-line notice of its licence (said once Drive answered);
+without gdown, offline or when Drive refuses, one message gives the link, the licence and where to
+put the file. A file already there that cannot be the weights (a web page, or a size no release of
+them has: `release_bytes`) is moved aside (`set_aside`, to ``NAME.rejected``) with one line saying
+so, and fetched again. `check_download` is the check of any named file taptr fetched (from Drive or
+the Hugging Face Hub): not a web page, of a size a release can have, and the architecture its name
+promises (`taptr.weights.identity`).
 """
 
 from __future__ import annotations
@@ -19,9 +18,14 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from taptr.checkpoint import CheckpointError, check_architecture, is_web_page, read_checkpoint
-from taptr.checkpoint_identity import describe, same_architecture, weights_bytes
 from taptr.config import get_config
+from taptr.weights.checkpoint import (
+    CheckpointError,
+    check_architecture,
+    is_web_page,
+    read_checkpoint,
+)
+from taptr.weights.identity import describe, same_architecture, weights_bytes
 
 logger = logging.getLogger(__name__)
 
@@ -45,7 +49,8 @@ class ManualWeights:
     """Weights the authors host on Google Drive.
 
     Drive answers scripted downloads of large files (``curl``, ``wget``) with a
-    confirmation web page; ``gdown`` reads it (`taptr.drive`). taptr reads the file from
+    confirmation web page; ``gdown`` reads it (`taptr.weights.drive_download`). taptr reads
+    the file from
     `weights_dir`, downloads it there once when it is missing and gdown is installed, and
     otherwise says where to get it and where to put it.
 
@@ -162,7 +167,7 @@ def manual_path(name: str) -> Path:
     """The file of Drive weights ``name`` in `weights_dir`, downloaded once when missing.
 
     A file there that cannot be the weights (`kept_problem`) is moved aside first
-    (`set_aside`). The download (`taptr.drive.fetch`) says the licence once Drive
+    (`set_aside`). The download (`taptr.weights.drive_download.fetch`) says the licence once Drive
     answered, shows a progress bar, and keeps the file only when `check_download`
     accepts it.
 
@@ -187,7 +192,7 @@ def manual_path(name: str) -> Path:
         raise FileExistsError(
             f"{path} is in the way of the weights of {name}: it is not a file; move it away"
         )
-    from taptr import drive
+    from taptr.weights import drive_download
 
     def announce() -> None:
         logger.warning(
@@ -200,14 +205,14 @@ def manual_path(name: str) -> Path:
         )
 
     try:
-        return drive.fetch(
+        return drive_download.fetch(
             entry.url,
             path,
             lambda file: check_download(file, name, entry.preset),
             largest=release_bytes(entry.preset)[1],
             announce=announce,
         )
-    except drive.DriveError as error:
+    except drive_download.DriveError as error:
         raise FileNotFoundError(_manual_message(name, entry, path, str(error))) from None
 
 

@@ -2,12 +2,12 @@
 
 `weights_path` reads a published file from the local Hub cache, without a request, and
 otherwise (not offline) asks the Hub once and downloads it through ``huggingface_hub``
-after a one-line notice of its licence. The transfer is bounded (`taptr.transfer`): the
+after a one-line notice of its licence. The transfer is bounded (`taptr.weights.transfer`): the
 Hub's name must resolve and a connection open within 2 s
-(`taptr.transfer.reach_seconds`), so that an offline machine falls back at once, and the
+(`taptr.weights.transfer.reach_seconds`), so that an offline machine falls back at once, and the
 Hub answer within ``TAPTR_DOWNLOAD_TIMEOUT`` seconds (default `PROBE_TIMEOUT`); the
 download must keep up ``TAPTR_DOWNLOAD_MIN_RATE``; a declared or streamed size above what a
-release of the weights holds (`taptr.drive_weights.release_bytes`) is refused before the
+release of the weights holds (`taptr.weights.drive.release_bytes`) is refused before the
 rest is written. A cached file that cannot be the weights (a web page, a size no release
 has) is moved aside with one line and fetched again; one whose SHA-256 is not the
 published one is deleted from the cache.
@@ -24,9 +24,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from taptr import transfer
-from taptr.checkpoint import CheckpointError
-from taptr.drive_weights import IDEA_LICENCE, kept_problem, release_bytes, set_aside
+from taptr.weights import transfer
+from taptr.weights.checkpoint import CheckpointError
+from taptr.weights.drive import IDEA_LICENCE, kept_problem, release_bytes, set_aside
 
 logger = logging.getLogger(__name__)
 
@@ -228,7 +228,7 @@ def _transfer(
     seconds: float,
     folder: str,
 ) -> Path:
-    """``hf_hub_download``, watched: too slow or too large stops it (`taptr.transfer`)."""
+    """``hf_hub_download``, watched: too slow or too large stops it (`taptr.weights.transfer`)."""
     from huggingface_hub import constants, hf_hub_download
 
     watch = transfer.Watch(
@@ -265,7 +265,7 @@ def _transfer(
 def _watched_bar(watch: transfer.Watch, stop: threading.Event) -> type:
     """A progress bar class for ``hf_hub_download`` that reports to ``watch``.
 
-    Its reports raise `taptr.transfer.TransferError` (ending the download where it is)
+    Its reports raise `taptr.weights.transfer.TransferError` (ending the download where it is)
     for a size above the watch's bound, and once ``stop`` is set: a download left behind
     as too slow ends at its next chunk.
     """

@@ -8,11 +8,11 @@ its maintainers) and fetch the file with a progress bar into a hidden temporary 
 its destination (the hidden temporary of `taptr.io.atomic.atomic_path`, which a killed
 process leaves for the next download to remove), checks what arrived, and only then
 renames it into place: a partial or wrong download never looks complete. The checks are
-the caller's (`fetch`'s ``check``): `taptr.hub` refuses web pages, files smaller than the
-weights they should hold and another model's weights.
+the caller's (`fetch`'s ``check``): `taptr.weights.registry` refuses web pages, files
+smaller than the weights they should hold and another model's weights.
 
-The transfer is bounded (`taptr.transfer`): Drive's name must resolve and a connection
-open within seconds (`taptr.transfer.reach_seconds`), Drive answer within
+The transfer is bounded (`taptr.weights.transfer`): Drive's name must resolve and a connection
+open within seconds (`taptr.weights.transfer.reach_seconds`), Drive answer within
 ``TAPTR_DOWNLOAD_TIMEOUT`` seconds (default `PROBE_TIMEOUT`), the download keep up
 ``TAPTR_DOWNLOAD_MIN_RATE`` after that, and its declared or streamed size stay within what
 the file can be (``largest``); one that does not is stopped with one line saying why.
@@ -31,8 +31,8 @@ import threading
 from collections.abc import Callable
 from pathlib import Path
 
-from taptr import transfer
 from taptr.io.atomic import atomic_path
+from taptr.weights import transfer
 
 logger = logging.getLogger(__name__)
 
@@ -106,7 +106,7 @@ def fetch(
     Args:
         url: the Drive link of the file.
         destination: where the file goes; nothing appears there unless ``check`` passes.
-        check: raises (a `taptr.checkpoint.CheckpointError`) when the downloaded file is
+        check: raises (a `taptr.weights.checkpoint.CheckpointError`) when the downloaded file is
             not what it should be; it runs on the temporary file.
         largest: bytes the file can have at most: a larger declared or streamed size
             stops the download.
