@@ -19,7 +19,9 @@ from tests.helpers import (
 )
 
 if os.environ.get("PYTEST_XDIST_WORKER"):
-    torch.set_num_threads(1)  # two workers on two cores: one thread each
+    # two workers on two cores: one thread each, in the commands they run too
+    torch.set_num_threads(1)
+    os.environ["OMP_NUM_THREADS"] = "1"
 
 # Fuzz tests (tests/test_fuzz.py): few examples by default so the suite stays in the CI
 # budget; ``--hypothesis-profile=long`` runs >= 2,000 per test by hand.

@@ -34,6 +34,8 @@ class ModelSpec:
         frames_per_call: frames per encoder call, or ``auto``.
         capture: TAPTRv3's captured step: ``auto``, ``on`` or ``off``.
         compile: compile the model with ``torch.compile``.
+        threads: CPU threads for products and convolutions; None: the free cores
+            (`taptr.runtime.threads.choose_threads`).
     """
 
     checkpoint: str | None = None
@@ -47,6 +49,7 @@ class ModelSpec:
     frames_per_call: int | str = "auto"
     capture: str = "auto"
     compile: bool = False
+    threads: int | None = None
 
     def on(self, device: str | None) -> ModelSpec:
         """The same tracker on another device."""
@@ -56,7 +59,9 @@ class ModelSpec:
         """The predictor this spec describes, built in this process."""
         from taptr.api.predictor import Predictor
         from taptr.runtime.precision import autocast_type
+        from taptr.runtime.threads import use_threads
 
+        use_threads(self.threads)
         predictor = Predictor.from_pretrained(
             self.checkpoint,
             device=self.device,

@@ -28,6 +28,7 @@ from contextlib import contextmanager
 from typing import NoReturn
 
 from taptr.cli.common import guards
+from taptr.runtime import threads
 
 COMMANDS = (
     "convert",
@@ -147,6 +148,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Runs the command line; returns the exit status."""
+    threads.sleep_when_idle()  # before any command imports torch
     parser = build_parser()
     args = parser.parse_args(join_dash_values(sys.argv[1:] if argv is None else list(argv)))
     handler = logging.StreamHandler()

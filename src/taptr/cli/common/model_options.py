@@ -13,6 +13,7 @@ from taptr.cli.common.options import (
     MIN_INPUT_SIDE,
     add_device_argument,
     add_frames_per_call_argument,
+    add_threads_argument,
     check_at_least,
     check_device,
     check_input_size,
@@ -113,6 +114,7 @@ def add_model_arguments(parser: argparse.ArgumentParser, max_frames: int | None 
         "says it saves more than it costs over the video (a long video measures it on the "
         "job), on, or off (default: auto)",
     )
+    add_threads_argument(parser)
     parser.add_argument(
         "--max-frames",
         type=int,
@@ -133,6 +135,8 @@ def check_model_arguments(args: argparse.Namespace) -> None:
     if args.history_frames is not None:
         check_history_frames(args.history_frames, "--history-frames")
     check_at_least(args.max_frames, 1, "--max-frames")
+    if args.threads is not None:
+        check_at_least(args.threads, 1, "--threads")
     check_checkpoint_name(args.checkpoint)
 
 
@@ -164,6 +168,7 @@ def model_spec(args: argparse.Namespace) -> ModelSpec:
         frames_per_call=args.frames_per_call,
         capture=args.capture,
         compile=args.compile,
+        threads=args.threads,
     )
 
 

@@ -46,6 +46,18 @@ def add_frames_per_call_argument(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def add_threads_argument(parser: argparse.ArgumentParser) -> None:
+    """``--threads N`` (`taptr.runtime.threads`)."""
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=None,
+        metavar="N",
+        help="CPU threads for the model's products and convolutions (default: the cores "
+        "that other work leaves free when the run starts, or OMP_NUM_THREADS)",
+    )
+
+
 def _frames_per_call(value: str) -> int | str:
     if value == "auto":
         return value
