@@ -6,11 +6,13 @@ import importlib.util
 import os
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 import torch
 from hypothesis import HealthCheck, settings
 
+from tests.fake_drive import FakeDrive
 from tests.helpers import (
     V3_FINGERPRINT,
     V3_SEED,
@@ -139,3 +141,43 @@ def official_v3_checkpoint(tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("official_v3") / "TAPTRv3_resnet18_384x512.pth"
     torch.save({"ema_model": weights}, path)
     return path
+
+
+@pytest.fixture
+def weights_folder(monkeypatch, tmp_path) -> Path:
+    """Downloads allowed (the suite runs offline) into an empty weights folder of our own."""
+    monkeypatch.delenv("HF_HUB_OFFLINE", raising=False)
+    monkeypatch.delenv("TAPTR_OFFLINE", raising=False)
+    folder = tmp_path / "weights"
+    monkeypatch.setenv("TAPTR_WEIGHTS_DIR", str(folder))
+    return folder
+
+
+@pytest.fixture
+def fake_drive(monkeypatch) -> Iterator[Callable[..., FakeDrive]]:
+    """Starts fake Drives (`tests.fake_drive.FakeDrive`) that taptr downloads from, on 127.0.0.1.
+
+    Call it with the file's content and the fake's options; the last one started is the one
+    taptr asks (``TAPTR_DRIVE_URL``). All are closed after the test.
+    """
+    servers: list[FakeDrive] = []
+
+    def start(content: bytes, **options: Any) -> FakeDrive:
+        fake = FakeDrive(content, **options)
+        servers.append(fake)
+        monkeypatch.setenv("TAPTR_DRIVE_URL", fake.url)
+        return fake
+
+    yield start
+    for fake in servers:
+        fake.close()
+
+
+@pytest.fixture(scope="module")
+def one_thread() -> Iterator[None]:
+    """One torch thread for a module: on a shared 2-core machine two threads spin against
+    each other."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)

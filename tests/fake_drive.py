@@ -15,6 +15,7 @@ import contextlib
 import threading
 import time
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
 from urllib.parse import parse_qs, urlsplit
 
 R18_ID = "1frPX9R_nKDG8FmL-vH6l_2HsJfhvEjtg"
@@ -158,3 +159,8 @@ def _handler(fake: FakeDrive) -> type[BaseHTTPRequestHandler]:
             pass
 
     return Handler
+
+
+def files_in(folder: Path) -> list[str]:
+    """The names in a weights folder, sorted; none when it does not exist."""
+    return sorted(p.name for p in folder.iterdir()) if folder.exists() else []

@@ -23,13 +23,7 @@ from taptr.windows import window_ranges
 
 FRAMES, HEIGHT, WIDTH = 11, 40, 56
 
-
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.fixture(scope="module")

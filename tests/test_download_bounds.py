@@ -11,6 +11,7 @@ a few megabytes and every test takes a second or two. Nothing leaves the machine
 
 from __future__ import annotations
 
+import functools
 import logging
 import socket
 import threading
@@ -24,7 +25,7 @@ import taptr
 from taptr.weights import registry
 from taptr.weights.checkpoint import save_checkpoint
 from taptr.weights.drive import ManualWeights, release_bytes
-from tests.fake_drive import FakeDrive
+from tests.fake_drive import files_in
 
 pytest.importorskip("gdown")
 
@@ -47,35 +48,21 @@ def tiny_file(tmp_path_factory) -> bytes:
 
 
 @pytest.fixture
-def weights(monkeypatch, tmp_path) -> Path:
-    """Downloads allowed, ``tiny-drive`` registered, an empty weights folder.
+def weights_folder(weights_folder, monkeypatch) -> Path:
+    """The empty weights folder, ``tiny-drive`` registered, answers awaited 3 s.
 
-    The wait for an answer is 3 s, ample on a loaded machine; the tests of a slow server
-    lower it to `QUICK` seconds.
+    3 s is ample on a loaded machine; the tests of a slow server lower it to `QUICK` seconds.
     """
-    monkeypatch.delenv("HF_HUB_OFFLINE", raising=False)
-    monkeypatch.delenv("TAPTR_OFFLINE", raising=False)
     monkeypatch.setenv("TAPTR_DOWNLOAD_TIMEOUT", "3")
     monkeypatch.setenv("TAPTR_DOWNLOAD_MIN_RATE", "16M")
     monkeypatch.setitem(registry.MANUAL, "tiny-drive", TINY)
-    folder = tmp_path / "weights"
-    monkeypatch.setenv("TAPTR_WEIGHTS_DIR", str(folder))
-    return folder
+    return weights_folder
 
 
 @pytest.fixture
-def serve(monkeypatch):
-    servers: list[FakeDrive] = []
-
-    def start(content: bytes, **options) -> FakeDrive:
-        fake = FakeDrive(content, ids=(TINY_ID,), **options)
-        servers.append(fake)
-        monkeypatch.setenv("TAPTR_DRIVE_URL", fake.url)
-        return fake
-
-    yield start
-    for fake in servers:
-        fake.close()
+def fake_drive(fake_drive):
+    """Fake Drives that serve the tiny file's id."""
+    return functools.partial(fake_drive, ids=(TINY_ID,))
 
 
 def _timed(call) -> tuple[BaseException | None, float]:
@@ -87,90 +74,91 @@ def _timed(call) -> tuple[BaseException | None, float]:
     return None, time.perf_counter() - started
 
 
-def _left(folder: Path) -> list[str]:
-    return sorted(p.name for p in folder.iterdir()) if folder.exists() else []
-
-
 # -- a bad file at the target --------------------------------------------------------------
 
 
 @pytest.mark.parametrize("bad", ["partial", "web page"])
 def test_a_bad_file_at_the_target_is_moved_aside_and_fetched_again(
-    weights, serve, tiny_file, caplog, bad
+    weights_folder, fake_drive, tiny_file, caplog, bad
 ):
-    weights.mkdir()
+    weights_folder.mkdir()
     content = tiny_file[:1000] if bad == "partial" else b"<!DOCTYPE html><html>quota</html>"
-    (weights / "tiny.pth").write_bytes(content)
-    fake = serve(tiny_file)
+    (weights_folder / "tiny.pth").write_bytes(content)
+    fake = fake_drive(tiny_file)
     with caplog.at_level(logging.WARNING):
         model = taptr.from_pretrained("tiny-drive")
     assert model.config.d_model == 32  # the tiny preset's
-    assert (weights / "tiny.pth").read_bytes() == tiny_file  # fetched again
-    assert (weights / "tiny.pth.rejected").read_bytes() == content  # kept aside, not lost
+    assert (weights_folder / "tiny.pth").read_bytes() == tiny_file  # fetched again
+    assert (weights_folder / "tiny.pth.rejected").read_bytes() == content  # kept aside, not lost
     lines = [r.getMessage() for r in caplog.records if "moved aside" in r.getMessage()]
     reason = "a transfer cut short" if bad == "partial" else "a web page (HTML)"
     assert len(lines) == 1 and reason in lines[0] and "fetching it again" in lines[0]
     assert fake.requests == ["/uc", "/download"]
 
 
-def test_taptr_download_replaces_a_bad_file_too(weights, serve, tiny_file, caplog):
+def test_taptr_download_replaces_a_bad_file_too(weights_folder, fake_drive, tiny_file, caplog):
     from taptr.cli.main import main
 
-    weights.mkdir()
-    (weights / "tiny.pth").write_bytes(tiny_file[:1000])
-    serve(tiny_file)
+    weights_folder.mkdir()
+    (weights_folder / "tiny.pth").write_bytes(tiny_file[:1000])
+    fake_drive(tiny_file)
     with caplog.at_level(logging.WARNING):
         assert main(["download", "tiny-drive"]) == 0
-    assert (weights / "tiny.pth").read_bytes() == tiny_file
+    assert (weights_folder / "tiny.pth").read_bytes() == tiny_file
     assert "moved aside" in caplog.text
 
 
-def test_a_kept_file_that_does_not_load_says_what_to_delete(weights, serve, tiny_file):
-    weights.mkdir()
+def test_a_kept_file_that_does_not_load_says_what_to_delete(weights_folder, fake_drive, tiny_file):
+    weights_folder.mkdir()
     corrupt = tiny_file[:-200] + bytes(200)  # whole size, broken inside: read to be found
-    (weights / "tiny.pth").write_bytes(corrupt)
+    (weights_folder / "tiny.pth").write_bytes(corrupt)
     with pytest.raises(ValueError) as raised:
         taptr.from_pretrained("tiny-drive")
-    assert f"delete {weights / 'tiny.pth'}" in str(raised.value) or (
-        f"{weights / 'tiny.pth'} is taptr's copy of tiny-drive: delete it" in str(raised.value)
+    assert f"delete {weights_folder / 'tiny.pth'}" in str(raised.value) or (
+        f"{weights_folder / 'tiny.pth'} is taptr's copy of tiny-drive: delete it"
+        in str(raised.value)
     )
 
 
 # -- trickling, oversized ------------------------------------------------------------------
 
 
-def test_a_trickling_drive_is_stopped_by_the_least_rate(weights, serve, tiny_file, monkeypatch):
+def test_a_trickling_drive_is_stopped_by_the_least_rate(
+    weights_folder, fake_drive, tiny_file, monkeypatch
+):
     monkeypatch.setenv("TAPTR_DOWNLOAD_TIMEOUT", QUICK)
-    fake = serve(tiny_file, trickle=0.01, trickle_for=8.0)
+    fake = fake_drive(tiny_file, trickle=0.01, trickle_for=8.0)
     error, seconds = _timed(lambda: taptr.from_pretrained("tiny-drive"))
     assert isinstance(error, FileNotFoundError), error
     message = str(error)
     assert "slower than 16,777,216 bytes a second" in message
     assert "TAPTR_DOWNLOAD_MIN_RATE" in message and "nothing was kept" in message
-    assert seconds < 5.0 and _left(weights) == []
+    assert seconds < 5.0 and files_in(weights_folder) == []
     assert fake.sent < len(tiny_file)
 
 
 def test_a_declared_size_far_above_the_release_is_refused_before_it_is_written(
-    weights, serve, tiny_file
+    weights_folder, fake_drive, tiny_file
 ):
-    fake = serve(tiny_file, padding=64 * 1024**2)  # declares 64 MiB more
+    fake = fake_drive(tiny_file, padding=64 * 1024**2)  # declares 64 MiB more
     error, seconds = _timed(lambda: taptr.from_pretrained("tiny-drive"))
     assert isinstance(error, FileNotFoundError), error
     declared = len(tiny_file) + 64 * 1024**2
     assert f"the server declares {declared:,} bytes" in str(error)
     assert "nothing was kept" in str(error)
-    assert fake.sent < 24 * 1024**2 and _left(weights) == []  # loopback buffers, not 64 MiB
+    assert (
+        fake.sent < 24 * 1024**2 and files_in(weights_folder) == []
+    )  # loopback buffers, not 64 MiB
     assert seconds < 5.0
 
 
-def test_a_stream_far_above_the_release_is_cut_at_the_bound(weights, serve, tiny_file):
-    fake = serve(tiny_file, padding=64 * 1024**2, announce=False)
+def test_a_stream_far_above_the_release_is_cut_at_the_bound(weights_folder, fake_drive, tiny_file):
+    fake = fake_drive(tiny_file, padding=64 * 1024**2, announce=False)
     error, _ = _timed(lambda: taptr.from_pretrained("tiny-drive"))
     assert isinstance(error, FileNotFoundError), error
     most = release_bytes("tiny")[1]
     assert "the server sent" in str(error) and f"more than the {most:,}" in str(error)
-    assert fake.sent < most + 24 * 1024**2 and _left(weights) == []
+    assert fake.sent < most + 24 * 1024**2 and files_in(weights_folder) == []
 
 
 def test_the_bounds_are_read_from_the_environment(monkeypatch):
@@ -212,7 +200,7 @@ def slow_resolver(monkeypatch):
 
 
 def test_a_name_that_resolves_slowly_fails_within_the_timeout(
-    weights, slow_resolver, monkeypatch, caplog
+    weights_folder, slow_resolver, monkeypatch, caplog
 ):
     monkeypatch.setenv("TAPTR_DOWNLOAD_TIMEOUT", QUICK)
     monkeypatch.setenv("TAPTR_DRIVE_URL", "http://drive.slow.invalid")
@@ -225,7 +213,7 @@ def test_a_name_that_resolves_slowly_fails_within_the_timeout(
 
 
 def test_offline_the_message_is_whole_and_no_download_is_announced(
-    weights, slow_resolver, monkeypatch, caplog
+    weights_folder, slow_resolver, monkeypatch, caplog
 ):
     monkeypatch.setenv("TAPTR_DRIVE_URL", "https://drive.google.invalid")
     with caplog.at_level(logging.WARNING):

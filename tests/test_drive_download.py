@@ -12,7 +12,6 @@ import logging
 import socket
 import sys
 import time
-from pathlib import Path
 
 import pytest
 
@@ -20,108 +19,83 @@ import taptr
 from taptr.model.v3 import TAPTRv3
 from taptr.weights import drive_download, registry
 from taptr.weights.checkpoint import CheckpointError
-from tests.fake_drive import R18_ID, R50_ID, FakeDrive
+from tests.fake_drive import R18_ID, R50_ID, files_in
 
 pytest.importorskip("gdown")
 
 
-@pytest.fixture
-def weights(monkeypatch, tmp_path) -> Path:
-    """Downloads allowed (the suite runs offline) into an empty weights folder of our own."""
-    monkeypatch.delenv("HF_HUB_OFFLINE", raising=False)
-    monkeypatch.delenv("TAPTR_OFFLINE", raising=False)
-    folder = tmp_path / "weights"
-    monkeypatch.setenv("TAPTR_WEIGHTS_DIR", str(folder))
-    return folder
-
-
-@pytest.fixture
-def serve(monkeypatch):
-    servers: list[FakeDrive] = []
-
-    def start(content: bytes, **options) -> FakeDrive:
-        fake = FakeDrive(content, **options)
-        servers.append(fake)
-        monkeypatch.setenv("TAPTR_DRIVE_URL", fake.url)
-        return fake
-
-    yield start
-    for fake in servers:
-        fake.close()
-
-
-def left_in(folder: Path) -> list[str]:
-    return sorted(p.name for p in folder.iterdir()) if folder.exists() else []
-
-
 def test_taptrv3_downloads_once_through_the_confirmation_page(
-    weights, serve, official_v3_checkpoint, caplog
+    weights_folder, fake_drive, official_v3_checkpoint, caplog
 ):
-    fake = serve(official_v3_checkpoint.read_bytes())
-    weights.mkdir()  # what a download killed outright (SIGKILL) left: removed by the next
-    (weights / ".TAPTRv3_resnet18_384x512.999999999-dead.tmp.pth").write_bytes(b"half")
+    fake = fake_drive(official_v3_checkpoint.read_bytes())
+    weights_folder.mkdir()  # what a download killed outright (SIGKILL) left: removed by the next
+    (weights_folder / ".TAPTRv3_resnet18_384x512.999999999-dead.tmp.pth").write_bytes(b"half")
     with caplog.at_level(logging.WARNING):
         predictor = taptr.Predictor.from_pretrained("taptrv3-official", device="cpu")
     assert isinstance(predictor.model, TAPTRv3) and predictor.input_size == (384, 512)
     assert fake.requests == ["/uc", "/download"]  # the page first, then its form's address
     assert "IDEA License 1.0, non-commercial" in caplog.text  # said before the download
-    assert left_in(weights) == ["TAPTRv3_resnet18_384x512.pth"]  # no temporaries left
-    assert (weights / "TAPTRv3_resnet18_384x512.pth").read_bytes() == fake.content
+    assert files_in(weights_folder) == ["TAPTRv3_resnet18_384x512.pth"]  # no temporaries left
+    assert (weights_folder / "TAPTRv3_resnet18_384x512.pth").read_bytes() == fake.content
     # once: the folder answers from now on, without a request
-    assert registry.manual_path("taptrv3-official") == weights / "TAPTRv3_resnet18_384x512.pth"
+    assert (
+        registry.manual_path("taptrv3-official") == weights_folder / "TAPTRv3_resnet18_384x512.pth"
+    )
     assert len(fake.requests) == 2
 
 
 def test_a_file_served_without_confirmation_is_taken_as_it_comes(
-    weights, serve, official_v3_checkpoint
+    weights_folder, fake_drive, official_v3_checkpoint
 ):
-    fake = serve(official_v3_checkpoint.read_bytes(), direct=True)
+    fake = fake_drive(official_v3_checkpoint.read_bytes(), direct=True)
     assert registry.download("taptrv3-official").read_bytes() == fake.content
     assert fake.requests == ["/uc", "/uc"]  # asked once, then fetched by gdown
 
 
 def test_an_interrupted_download_leaves_nothing_that_looks_complete(
-    weights, serve, official_v3_checkpoint
+    weights_folder, fake_drive, official_v3_checkpoint
 ):
     content = official_v3_checkpoint.read_bytes()
-    serve(content, cut_at=len(content) // 2)
+    fake_drive(content, cut_at=len(content) // 2)
     with pytest.raises(FileNotFoundError) as raised:
         taptr.from_pretrained("taptrv3-official")
     message = str(raised.value)
     assert "the download broke off" in message and R18_ID in message
     assert "\n" not in message
-    assert left_in(weights) == []  # neither the file nor gdown's partial one
+    assert files_in(weights_folder) == []  # neither the file nor gdown's partial one
 
 
-def test_a_file_cut_short_is_refused_by_its_size(weights, serve, official_v3_checkpoint):
-    serve(official_v3_checkpoint.read_bytes()[: 1 << 20])  # announced and sent: 1 MiB
+def test_a_file_cut_short_is_refused_by_its_size(
+    weights_folder, fake_drive, official_v3_checkpoint
+):
+    fake_drive(official_v3_checkpoint.read_bytes()[: 1 << 20])  # announced and sent: 1 MiB
     with pytest.raises(CheckpointError, match=r"1,048,576 bytes, but its weights take at least"):
         taptr.from_pretrained("taptrv3-official")
-    assert left_in(weights) == []
+    assert files_in(weights_folder) == []
 
 
-def test_a_drive_page_instead_of_the_file_is_refused(weights, serve):
+def test_a_drive_page_instead_of_the_file_is_refused(weights_folder, fake_drive):
     page = b"<!DOCTYPE html><html><body>Too many users have viewed or downloaded this file"
-    serve(page + b" " * 100, kind="text/html")
+    fake_drive(page + b" " * 100, kind="text/html")
     with pytest.raises(CheckpointError, match=r"is a web page \(HTML\), not weights"):
         taptr.from_pretrained("taptrv3-official")
-    assert left_in(weights) == []
+    assert files_in(weights_folder) == []
 
 
-def test_drives_download_limit_is_said_with_the_link(weights, serve):
-    fake = serve(b"unused", quota=True)
+def test_drives_download_limit_is_said_with_the_link(weights_folder, fake_drive):
+    fake = fake_drive(b"unused", quota=True)
     with pytest.raises(FileNotFoundError) as raised:
         taptr.from_pretrained("taptrv3-official")
     message = str(raised.value)
     assert "Drive did not give the file (" in message and "Too many users" in message
     assert R18_ID in message and "\n" not in message
-    assert fake.requests == ["/uc"] and left_in(weights) == []
+    assert fake.requests == ["/uc"] and files_in(weights_folder) == []
 
 
 def test_another_models_weights_are_refused_with_what_they_are(
-    weights, serve, official_checkpoint, official_v3_checkpoint
+    weights_folder, fake_drive, official_checkpoint, official_v3_checkpoint
 ):
-    serve(official_checkpoint.read_bytes())  # TAPTRv2 under TAPTRv3's name
+    fake_drive(official_checkpoint.read_bytes())  # TAPTRv2 under TAPTRv3's name
     with pytest.raises(CheckpointError) as raised:
         taptr.from_pretrained("taptrv3-official")
     message = str(raised.value)
@@ -129,14 +103,16 @@ def test_another_models_weights_are_refused_with_what_they_are(
     assert "taptrv3-official is TAPTRv3 (ResNet-18 backbone, C = 256)" in message
     # issue 45: the refused download was never kept, so there is nothing to delete
     assert "nothing was kept" in message and "delete" not in message
-    serve(official_v3_checkpoint.read_bytes())  # ResNet-18 under the ResNet-50 name
+    fake_drive(official_v3_checkpoint.read_bytes())  # ResNet-18 under the ResNet-50 name
     with pytest.raises(CheckpointError, match=r"holds TAPTRv3 \(ResNet-18.*is TAPTRv3 \(ResNet-50"):
         taptr.from_pretrained("taptrv3-r50-official")
-    assert left_in(weights) == []
+    assert files_in(weights_folder) == []
 
 
-def test_without_gdown_or_offline_the_message_of_today_stays(weights, serve, monkeypatch, caplog):
-    fake = serve(b"unused")
+def test_without_gdown_or_offline_the_message_of_today_stays(
+    weights_folder, fake_drive, monkeypatch, caplog
+):
+    fake = fake_drive(b"unused")
     monkeypatch.setitem(sys.modules, "gdown", None)
     with pytest.raises(FileNotFoundError) as raised, caplog.at_level(logging.WARNING):
         taptr.from_pretrained("taptrv3-official")
@@ -151,7 +127,7 @@ def test_without_gdown_or_offline_the_message_of_today_stays(weights, serve, mon
     assert fake.requests == []
 
 
-def test_unreachable_drive_is_said_at_once(weights, monkeypatch):
+def test_unreachable_drive_is_said_at_once(weights_folder, monkeypatch):
     with socket.socket() as probe:  # a port nobody listens on
         probe.bind(("127.0.0.1", 0))
         port = probe.getsockname()[1]
@@ -162,12 +138,14 @@ def test_unreachable_drive_is_said_at_once(weights, monkeypatch):
     assert time.perf_counter() - started < drive_download.PROBE_TIMEOUT
 
 
-def test_taptr_download_fetches_ahead_of_time(weights, serve, official_v3_checkpoint, capsys):
+def test_taptr_download_fetches_ahead_of_time(
+    weights_folder, fake_drive, official_v3_checkpoint, capsys
+):
     from taptr.cli.main import main
 
-    fake = serve(official_v3_checkpoint.read_bytes())
+    fake = fake_drive(official_v3_checkpoint.read_bytes())
     assert main(["download", "taptrv3-official"]) == 0
-    path = weights / "TAPTRv3_resnet18_384x512.pth"
+    path = weights_folder / "TAPTRv3_resnet18_384x512.pth"
     assert path.read_bytes() == fake.content
     assert str(path) in capsys.readouterr().out
     assert main(["download", "taptrv3-official"]) == 0  # already there: no second transfer

@@ -14,14 +14,7 @@ from taptr.cli.main import main
 from taptr.eval.metrics import METRIC_NAMES
 from tests.test_tapvid_fabricated import make_clip, write_davis, write_kinetics_shard
 
-
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """One torch thread: on a shared 2-core machine two threads spin against each other."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.fixture(scope="module")

@@ -11,6 +11,8 @@ from taptr.eval.protocols import OfficialProtocol, StandardProtocol
 from taptr.eval.query_sampling import sample_queries
 from tests.test_tapvid_fabricated import make_clip
 
+pytestmark = pytest.mark.usefixtures("one_thread")
+
 
 def test_padding_follows_the_seed0_recipe():
     real = np.array([[10.5, 20.25], [100.0, 3.0], [30.0, 240.0]])
@@ -63,15 +65,6 @@ def test_official_scaling_is_raster_times_255():
     np.testing.assert_allclose(official.tracks, raster * 255, atol=1e-4)
     np.testing.assert_allclose(standard.tracks, raster * 256 - 0.5, atol=1e-4)
     assert official.video.shape == (8, 256, 256, 3)
-
-
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """One torch thread: on a shared 2-core machine two threads spin against each other."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="module")

@@ -11,21 +11,12 @@ import pytest
 from taptr.cli.main import main as cli_main
 from taptr.data.photo_bench import PhotoBenchConfig, make_photo_video, write_photo_bench
 from taptr.data.tapvid import iter_tapvid
+from tests.photo_checks import colour_drift, colours_under, fabricated_photo
 
 CONFIG = PhotoBenchConfig(height=96, width=112, num_frames=10, num_points=120)
 
 
-def fabricated_photo(seed: int = 0, height: int = 150, width: int = 170) -> np.ndarray:
-    """A textured (H, W, 3) uint8 'photograph' whose blue channel is zero everywhere."""
-    rng = np.random.default_rng(seed)
-    noise = rng.random((height // 6, width // 6, 2), dtype=np.float32)
-    smooth = cv2.resize(noise, (width, height), interpolation=cv2.INTER_CUBIC)
-    image = np.zeros((height, width, 3), np.uint8)
-    image[..., :2] = (255 * smooth).clip(0, 255).astype(np.uint8)
-    return image
-
-
-PHOTOS = [fabricated_photo(0), fabricated_photo(1)]
+PHOTOS = [fabricated_photo(seed, 150, 170, cell=6) for seed in (0, 1)]
 
 
 @pytest.fixture(scope="module")
@@ -44,22 +35,12 @@ def test_shapes_and_determinism(video):
 
 
 def test_points_lie_on_photographs_and_follow_them(video):
-    frames = np.arange(10)
-    rows = np.round(video.tracks[..., 1]).clip(0, 95).astype(int)
-    cols = np.round(video.tracks[..., 0]).clip(0, 111).astype(int)
-    colours = video.video[frames[:, None], rows, cols].astype(float)  # (T, N, 3)
+    colours = colours_under(video.video, video.tracks)  # (T, N, 3)
     # points are never sampled on the occluder: where visible, they show the photograph
     # (at the occluder's anti-aliased edge less than half of its colour shows)
     blue = colours[..., 2][video.visible]
     assert (blue <= 128).all() and (blue == 0).mean() > 0.9
-    first = video.visible.argmax(0)
-    same, other = [], []
-    for t in range(1, 10):
-        both = video.visible[t] & (first < t)
-        start = colours[first[both], np.flatnonzero(both)]
-        same.append(np.abs(colours[t, both] - start).mean(1))
-        other.append(np.abs(np.roll(colours[t, both], 1, axis=0) - start).mean(1))
-    same, other = np.concatenate(same), np.concatenate(other)
+    same, other = colour_drift(colours, video.visible)
     assert same.size > 200
     assert np.median(same) < 0.3 * np.median(other)
 

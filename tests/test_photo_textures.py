@@ -20,30 +20,26 @@ from taptr.data.photos import (
     photo_texture,
 )
 from taptr.data.synthetic import SyntheticConfig, make_video
+from tests.photo_checks import colour_drift, colours_under, fabricated_photo
 
 CONFIG = SyntheticConfig(height=96, width=128, num_frames=10, num_points=300, objects=(2, 3))
 
 
-def fabricated_photo(seed: int = 0, height: int = 120, width: int = 160) -> np.ndarray:
-    """A textured (H, W, 3) uint8 'photograph' whose blue channel is zero everywhere."""
-    rng = np.random.default_rng(seed)
-    noise = rng.random((height // 8, width // 8, 2), dtype=np.float32)
-    smooth = cv2.resize(noise, (width, height), interpolation=cv2.INTER_CUBIC)
-    image = np.zeros((height, width, 3), np.uint8)
-    image[..., :2] = (255 * smooth).clip(0, 255).astype(np.uint8)
-    return image
+def photo() -> np.ndarray:
+    """The fabricated photograph of these tests: no blue anywhere."""
+    return fabricated_photo(0, 120, 160, cell=8)
 
 
 @pytest.fixture(scope="module")
 def textured():
-    return make_video(np.random.default_rng(5), CONFIG, [fabricated_photo()], photo_prob=1.0)
+    return make_video(np.random.default_rng(5), CONFIG, [photo()], photo_prob=1.0)
 
 
 def test_photo_texture_crops_and_is_deterministic():
-    photo = fabricated_photo()
-    one = photo_texture(np.random.default_rng(1), [photo], 40, 70)
+    image = photo()
+    one = photo_texture(np.random.default_rng(1), [image], 40, 70)
     assert one.shape == (40, 70, 3) and one.dtype == np.uint8
-    np.testing.assert_array_equal(one, photo_texture(np.random.default_rng(1), [photo], 40, 70))
+    np.testing.assert_array_equal(one, photo_texture(np.random.default_rng(1), [image], 40, 70))
     assert (one[..., 2] == 0).all()  # colours come from the photograph
     with pytest.raises(ValueError, match="no photographs"):
         photo_texture(np.random.default_rng(1), [], 40, 70)
@@ -57,7 +53,7 @@ def test_every_layer_is_the_photograph(textured):
 
 
 def test_same_seed_same_video_and_no_photos_unchanged(textured):
-    again = make_video(np.random.default_rng(5), CONFIG, [fabricated_photo()], photo_prob=1.0)
+    again = make_video(np.random.default_rng(5), CONFIG, [photo()], photo_prob=1.0)
     np.testing.assert_array_equal(again.video, textured.video)
     np.testing.assert_array_equal(again.tracks, textured.tracks)
     # without photographs the random stream, hence the video, is what it always was
@@ -71,19 +67,8 @@ def test_same_seed_same_video_and_no_photos_unchanged(textured):
 
 def test_tracks_follow_photo_content(textured):
     """The colour under a point barely changes between two frames where it is visible."""
-    video = textured
-    frames = np.arange(10)
-    rows = np.round(video.tracks[..., 1]).clip(0, 95).astype(int)
-    cols = np.round(video.tracks[..., 0]).clip(0, 127).astype(int)
-    colours = video.video[frames[:, None], rows, cols].astype(float)
-    first = video.visible.argmax(0)
-    same, other = [], []
-    for t in range(1, 10):
-        both = video.visible[t] & (first < t)
-        start = colours[first[both], np.flatnonzero(both)]
-        same.append(np.abs(colours[t, both] - start).mean(1))
-        other.append(np.abs(np.roll(colours[t, both], 1, axis=0) - start).mean(1))
-    same, other = np.concatenate(same), np.concatenate(other)
+    colours = colours_under(textured.video, textured.tracks)
+    same, other = colour_drift(colours, textured.visible)
     assert same.size > 300
     assert np.median(same) < 0.3 * np.median(other)
 
@@ -129,8 +114,8 @@ def test_photo_folder(tmp_path):
         load_photo_folder(tmp_path / "missing")
     with pytest.raises(FileNotFoundError, match="no images"):
         load_photo_folder(tmp_path)
-    cv2.imwrite(str(tmp_path / "b.png"), fabricated_photo(1)[..., ::-1])
-    cv2.imwrite(str(tmp_path / "a.jpg"), fabricated_photo(2)[..., ::-1])
+    cv2.imwrite(str(tmp_path / "b.png"), fabricated_photo(1, 120, 160, cell=8)[..., ::-1])
+    cv2.imwrite(str(tmp_path / "a.jpg"), fabricated_photo(2, 120, 160, cell=8)[..., ::-1])
     (tmp_path / "notes.txt").write_text("not an image")
     photos = load_photo_folder(tmp_path)
     assert len(photos) == 2 and photos[0].shape == (120, 160, 3)
@@ -142,7 +127,7 @@ def test_photo_folder(tmp_path):
 def test_cli_textures(tmp_path, capsys):
     folder = tmp_path / "photos"
     folder.mkdir()
-    cv2.imwrite(str(folder / "p.png"), fabricated_photo()[..., ::-1])
+    cv2.imwrite(str(folder / "p.png"), photo()[..., ::-1])
     out = tmp_path / "videos"
     args = ["make-synthetic", "--out", str(out), "--videos", "2", "--size", "64", "80"]
     args += ["--frames", "5", "--points", "30", "--textures", str(folder), "--photo-prob", "1"]
@@ -157,4 +142,4 @@ def test_cli_textures(tmp_path, capsys):
 
 def test_photo_prob_must_be_a_probability():
     with pytest.raises(ValueError, match="photo_prob"):
-        make_video(np.random.default_rng(0), CONFIG, [fabricated_photo()], photo_prob=1.5)
+        make_video(np.random.default_rng(0), CONFIG, [photo()], photo_prob=1.5)
