@@ -16,7 +16,7 @@ import importlib
 import json
 import statistics
 import sys
-from collections import Counter, defaultdict
+from collections import Counter
 from pathlib import Path
 
 LONG_FUNCTION = 80
@@ -51,14 +51,19 @@ def _imports(tree: ast.AST) -> set[str]:
     return found
 
 
-def _floors(edges: dict[str, set[str]], rooms: set[str]) -> list[list[str]]:
-    """Rooms bottom-up: floor 0 imports nothing else; a room sits above all it imports."""
+def floors(edges: dict[str, set[str]], rooms: set[str], strict: bool = False) -> list[list[str]]:
+    """Rooms top-down: the lowest floor imports nothing else; a room sits above all it imports.
+
+    A cycle puts the rooms left on one floor, or raises ValueError naming them if ``strict``.
+    """
     floor: dict[str, int] = {}
     remaining = set(rooms)
     level = 0
     while remaining:
         ready = {r for r in remaining if edges[r] - {r} <= set(floor)}
         if not ready:  # a cycle: put the rest on one floor
+            if strict:
+                raise ValueError(f"an import cycle among {sorted(remaining)}")
             ready = set(remaining)
         for room in ready:
             floor[room] = level
@@ -70,29 +75,41 @@ def _floors(edges: dict[str, set[str]], rooms: set[str]) -> list[list[str]]:
     return [sorted(f) for f in out][::-1]
 
 
+def _module_name(path: Path, root: Path) -> str:
+    relative = path.relative_to(root.parent).with_suffix("")
+    return ".".join(p for p in relative.parts if p != "__init__")
+
+
+def room_graph(
+    root: Path,
+) -> tuple[set[str], dict[str, set[str]], dict[tuple[str, str], str]]:
+    """The rooms under ``root``, which rooms each imports, and one import behind each edge."""
+    files = sorted(root.rglob("*.py"))
+    packages = {p.relative_to(root).parts[0] for p in files if p.parent != root}
+    rooms = {_room(_module_name(p, root), packages) for p in files}
+    edges: dict[str, set[str]] = {room: set() for room in rooms}
+    witnesses: dict[tuple[str, str], str] = {}
+    for path in files:
+        module = _module_name(path, root)
+        room = _room(module, packages)
+        for imported in sorted(_imports(ast.parse(path.read_text()))):
+            target = _room(imported, packages)
+            if target in rooms and target != room:
+                edges[room].add(target)
+                witnesses.setdefault((room, target), f"{module} imports {imported}")
+    return rooms, edges, witnesses
+
+
 def measure(root: Path) -> dict[str, object]:
     """Metrics of every ``.py`` file under ``root`` (the package folder)."""
     files = sorted(root.rglob("*.py"))
     lines, spans = {}, []
-    edges: dict[str, set[str]] = defaultdict(set)
-    modules = {}
-    imports: dict[str, set[str]] = {}
     for path in files:
         text = path.read_text()
-        relative = path.relative_to(root.parent).with_suffix("")
-        module = ".".join(p for p in relative.parts if p != "__init__")
-        modules[module] = path
         lines[str(path.relative_to(root))] = len(text.splitlines())
         tree = ast.parse(text)
         spans += [(f"{path.relative_to(root)}:{name}", n) for name, n in _functions(tree)]
-        imports[module] = _imports(tree)
-    packages = {p.relative_to(root).parts[0] for p in files if p.parent != root}
-    for module, imported in imports.items():
-        edges[_room(module, packages)] |= {_room(m, packages) for m in imported}
-    rooms = {_room(m, packages) for m in modules}
-    edges = {room: {r for r in targets if r in rooms} for room, targets in edges.items()}
-    for room in rooms:
-        edges.setdefault(room, set())
+    rooms, edges, _ = room_graph(root)
     sys.path.insert(0, str(root.parent))
     public = importlib.import_module(root.name).__all__
     names = Counter(p.name for p in files if p.name != "__init__.py")
@@ -109,7 +126,7 @@ def measure(root: Path) -> dict[str, object]:
         "functions_over_80": sorted(f"{name} ({n})" for name, n in spans if n > LONG_FUNCTION),
         "public_names": len(public),
         "repeated_file_names": sorted(f"{name} ×{n}" for name, n in names.items() if n > 1),
-        "import_floors_top_down": _floors(edges, rooms),
+        "import_floors_top_down": floors(edges, rooms),
     }
 
 

@@ -54,7 +54,7 @@ def test_taptrv3_decoder_step_compiles_as_one_graph(backend):
 
 def test_a_compiled_decoder_gets_the_static_step():
     """A TAPTRv3 whose decoder was compiled reads the whole history buffer, as it must."""
-    from taptr.export.compile import compile_model
+    from taptr.runtime.compile import compile_model
 
     model = compile_model(build_model("tiny-v3").eval(), backend="eager")
     queries = QuerySet(

@@ -14,10 +14,10 @@ from taptr.api.online import OnlineTracker
 from taptr.api.predictor import Predictor
 from taptr.cli.common.model_options import KERNEL_CHOICES, add_model_arguments, load_predictor
 from taptr.cli.main import main
-from taptr.export import compile as compile_module
 from taptr.io.tracks import load_tracks_npz
 from taptr.io.video import write_video
 from taptr.model.ops import dense
+from taptr.runtime import compile as compile_module
 from taptr.runtime import kernel_choice, measured
 from taptr.runtime.kernel_choice import choose_kernel, time_kernels
 

@@ -75,7 +75,7 @@ class ModelSpec:
             capture=self.capture,
         )
         if self.compile:
-            from taptr.export.compile import compile_model
+            from taptr.runtime.compile import compile_model
 
             compile_model(predictor.model)
         return predictor

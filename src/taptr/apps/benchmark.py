@@ -71,7 +71,7 @@ class BenchConfig:
         flops: also count FLOPs (a second, slower pass).
         seed: seed of the weights, video and queries.
         history_frames: TAPTRv3's history limit (None: the model's, the whole video).
-        compile: compile the model's heavy parts first (`taptr.export.compile_model`).
+        compile: compile the model's heavy parts first (`taptr.runtime.compile.compile_model`).
         frames_per_call: frames per encoder call of the fast execution, ``auto`` as the
             predictor chooses (`taptr.runtime.encode_choice`, measured once per machine and
             shape before the clock starts) or a number; the reference execution encodes
@@ -218,7 +218,7 @@ def run_case(config: BenchConfig, positions_out: str | None = None) -> BenchResu
     if config.dtype == "bfloat16" and config.device == "cpu":
         model.bfloat16_trunk()
     if config.compile:
-        from taptr.export.compile import compile_model
+        from taptr.runtime.compile import compile_model
 
         compile_model(model)
     video, queries = _inputs(config)

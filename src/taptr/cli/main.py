@@ -126,7 +126,9 @@ def build_parser() -> argparse.ArgumentParser:
     """The top-level parser with every subcommand registered."""
     from taptr import __version__
 
-    parser = Parser(prog="taptr", description="TAPTRv2 point tracking.")
+    parser = Parser(
+        prog="taptr", description="Tracking Any Point with TAPTR v1, TAPTRv2 and TAPTRv3."
+    )
     parser.add_argument("--version", action="version", version=f"taptr {__version__}")
     parser.add_argument(
         "-v", "--verbose", action="store_true", help="log progress details and show tracebacks"

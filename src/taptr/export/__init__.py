@@ -10,8 +10,7 @@
   sliding-window driver (`taptr.export.graph_runner`, whose `GraphBackend` adapts the graphs to
   `taptr.model.sliding_window`), with `load_steps(directory)` for the graphs, and `track_video`
   the same in input pixels with (t, x, y) queries (`taptr.export.track_video`);
-- `compare(model, directory)` checks an export against the model (`taptr.export.verify`);
-- `compile_model(model)` is the optional ``torch.compile`` path for PyTorch inference.
+- `compare(model, directory)` checks an export against the model (`taptr.export.verify`).
 
 Names are imported on first use, so that importing the package loads neither the
 exporters nor onnxruntime.
@@ -32,7 +31,6 @@ _EXPORTS = {
     "OnnxSteps": "taptr.export.backends",
     "TorchScriptSteps": "taptr.export.backends",
     "compare": "taptr.export.verify",
-    "compile_model": "taptr.export.compile",
     "export_v3": "taptr.export.v3_graphs",
     "V3Manifest": "taptr.export.v3_manifest",
     "OnnxGraphs": "taptr.export.v3_sessions",

@@ -8,7 +8,7 @@
 - `drive`: TAPTRv3's weights on Google Drive (the weights folder first), fetched by
   `drive_download` through gdown;
 - `transfer`: bounds on every download (first answer, least rate, size);
-- `checkpoint`: reading and writing checkpoint files strictly and safely; `guards`: checks
+- `checkpoint`: reading and writing checkpoint files strictly and safely; `safe_checks`: checks
   of a file's content that cannot themselves be attacked; `identity`: named weights held to
   the architecture their name promises.
 

@@ -42,7 +42,8 @@ from taptr.official.convert import (
     official_config,
     official_weights,
 )
-from taptr.weights.guards import (
+from taptr.weights.identity import architecture_problem
+from taptr.weights.safe_checks import (
     CheckpointError,
     UnsafeCheckpointError,
     all_finite,
@@ -51,7 +52,6 @@ from taptr.weights.guards import (
     named_failures,
     short_repr,
 )
-from taptr.weights.identity import architecture_problem
 
 FORMAT = "taptr"
 VERSION = 1
@@ -227,7 +227,7 @@ def load_weights(model: nn.Module, state_dict: Mapping[str, Tensor], source: str
 def _config(data: Any, source: str) -> ModelConfig:
     """The checkpoint's model config, validated (types and ranges) before any module exists.
 
-    Its shape is bounded first (`taptr.weights.guards.config_shape_problem`): the range
+    Its shape is bounded first (`taptr.weights.safe_checks.config_shape_problem`): the range
     checks print the values they refuse.
     """
     if not isinstance(data, Mapping):

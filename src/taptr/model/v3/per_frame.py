@@ -184,7 +184,7 @@ def start_state(
         history_frames: the most frames held per point (0: all); default the model's.
         static_shapes: without a ``step``, read the history's whole buffer on every frame
             (`ModuleStep`); always so when the decoder is compiled (``nn.Module.compile``,
-            `taptr.export.compile_model`), which would otherwise trace it again for every
+            `taptr.runtime.compile.compile_model`), which would otherwise trace it again for every
             history length.
         step: `FrameState.step`; None: the model's decoder (`ModuleStep`).
 
