@@ -156,7 +156,6 @@ def _run(tmp_path, ids, script: Script, actors=2, max_attempts=3):
         layout,
         PartWriter(layout, "20261207T000000000000Z"),
         SchedulerOptions(actors, max_attempts, start_timeout=60),
-        lambda finished: None,
         on_commit,
     )
     scheduler.ray = FakeRay
@@ -242,7 +241,6 @@ def test_an_actor_that_cannot_load_its_model_stops_the_job(tmp_path):
         layout,
         PartWriter(layout, "20261207T000000000000Z"),
         SchedulerOptions(1),
-        lambda f: None,
         lambda f, a: None,
     )
     scheduler.ray = FakeRay
