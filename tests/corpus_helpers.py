@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import socket
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -100,3 +101,44 @@ def snapshot(folder: Path) -> dict[str, bytes]:
         if path.is_file() and not path.is_symlink():
             found[str(path.relative_to(folder))] = path.read_bytes()
     return found
+
+
+def ray_sockets_beyond_loopback(root: int | None = None) -> list[str]:
+    """Listening or connected sockets of ``root``'s process tree not on loopback.
+
+    Args:
+        root: the process whose tree is checked (default: this one, whose children are
+            the Ray processes a local instance or `ray.cluster_utils.Cluster` starts).
+
+    Returns:
+        ``"process: address"`` for every listening socket bound beyond loopback and every
+        connection to a peer beyond it (empty when all of the tree's traffic is local).
+    """
+    import psutil
+
+    top = psutil.Process(root or os.getpid())
+    family = {top.pid: top.name()}
+    for child in top.children(recursive=True):
+        with contextlib.suppress(psutil.Error):
+            family[child.pid] = child.name()
+    found = []
+    for connection in psutil.net_connections(kind="inet"):
+        if connection.pid not in family:
+            continue
+        bound = connection.status == psutil.CONN_LISTEN or connection.type == socket.SOCK_DGRAM
+        ends = [connection.laddr] if bound and connection.laddr else []
+        ends += [connection.raddr] if connection.raddr else []
+        found += [
+            f"{family[connection.pid]}: {end.ip}:{end.port} ({connection.status})"
+            for end in ends
+            if not _loopback(end.ip)
+        ]
+    return found
+
+
+def _loopback(address: str) -> bool:
+    import ipaddress
+
+    ip = ipaddress.ip_address(address.split("%")[0])
+    mapped = getattr(ip, "ipv4_mapped", None)
+    return ip.is_loopback or (mapped is not None and mapped.is_loopback)

@@ -304,3 +304,36 @@ def test_an_unsupported_scheme_says_so_on_the_command_line(tmp_path, capsys):
     argv = ["track-corpus", str(tmp_path), "--grid", "2", "--out", "mock:///res"]
     status, error = _track_corpus_exit(argv, capsys)
     assert status == 2 and "not mock:" in error and "Path does not exist" not in error
+
+
+def test_another_part_s_table_of_the_same_length_is_found_by_its_ids(tmp_path):
+    out = tmp_path / "out"
+    layout = prepared(out)
+    first = write_part(layout, ["a", "b"])
+    second = write_part(layout, ["d", "e"])
+    swapped = out / "tracks" / f"{first}.parquet"
+    swapped.write_bytes((out / "tracks" / f"{second}.parquet").read_bytes())  # 6 rows, as counted
+    _, (line,) = _sound(layout)
+    assert f"tracks/{first}.parquet holds other videos than its index names" in line
+    assert sorted(layout.read_tracks()["video_id"].to_pylist()) == sorted("de" * 3)
+
+
+def test_compaction_checks_each_video_s_rows_of_the_parts_it_rewrites(tmp_path):
+    from taptr.corpus.compaction import compact
+
+    out = tmp_path / "out"
+    layout = prepared(out)
+    first = write_part(layout, ["a", "b", "c"])
+    write_part(layout, ["a"], run="20261208T000000000000Z")  # supersedes a in the first
+    path = out / "tracks" / f"{first}.parquet"
+    table = pq.read_table(path)
+    ids = ["a", "a", "a", "a", "b", "b", "c", "c", "c"]  # b gave one row to a: same ends, count
+    pq.write_table(table.set_column(0, "video_id", pa.array(ids, pa.string())), path)
+    index, lines = _sound(layout)
+    assert lines == []  # the footer cannot see it ...
+    said: list[str] = []
+    compact(layout, "20261209T000000000000Z", index, lambda text, **_: said.append(text))
+    (line,) = said  # ... the rewrite, which reads the rows, does
+    assert f"tracks/{first}.parquet does not hold the rows its index counts" in line
+    assert not path.exists() and _sound(layout)[1] == []
+    assert sorted(layout.read_tracks()["video_id"].to_pylist()) == ["a"] * 3

@@ -114,7 +114,9 @@ def joined(ray: ModuleType, address: str | None) -> Iterator[None]:
     local = started_here and starts_local(address)
     with _worker_deaths_logged():
         if started_here:
-            with on_loopback() if local else contextlib.nullcontext():
+            # a cluster on loopback is joined as one: Ray would name it by the host's address
+            loopback = local or on_loopback_host(address or os.environ.get("RAY_ADDRESS"))
+            with on_loopback() if loopback else contextlib.nullcontext():
                 _init(ray, address)
         _restore(handlers)
         if local:
@@ -133,6 +135,21 @@ def starts_local(address: str | None) -> bool:
     if address is None:
         return not os.environ.get("RAY_ADDRESS")
     return address == "local"
+
+
+def on_loopback_host(address: str | None) -> bool:
+    """Whether ``address`` (``HOST:PORT``) names a cluster on this host's loopback."""
+    import ipaddress
+
+    if not address or "://" in address or ":" not in address:
+        return False  # auto, local, Ray Client (ray://): Ray resolves them itself
+    host = address.rpartition(":")[0].strip("[]")
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
 
 
 @contextlib.contextmanager

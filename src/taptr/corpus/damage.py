@@ -2,9 +2,12 @@
 
 A part is trusted when its index file passes `taptr.corpus.index_check` and each of its
 tables (tracks, failures) is there, reads as Parquet, has that table's columns and schema
-version (from the footer) and holds the rows its index counts. What this cannot see: a
-value edited inside a file that keeps its columns and its row count (a changed position,
-a swapped id), which only reading and checking every row would find.
+version, holds the rows its index counts, and its least and greatest video id are those
+its index names, all read from the footer (the row groups' statistics), not the rows.
+What this cannot see: a value edited inside a file that keeps its columns, its row count
+and its first and last id (a changed position, an id between them swapped), which only
+reading and checking every row would find; compaction, which reads the rows of the parts
+it rewrites, checks each video's rows there.
 
 A damaged part is removed whole (its index first, then its tables, each by the part's own
 name), one line saying which file and what is wrong; the videos only it held are then
@@ -18,6 +21,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from taptr.corpus.index_check import DamagedError, IndexPart, check_schema
@@ -28,6 +32,7 @@ from taptr.corpus.storage import StoreError
 
 if TYPE_CHECKING:
     import pyarrow as pa
+    import pyarrow.parquet as pq
 
 MAX_LINES = 10
 """Damaged parts named one per line; more are counted in one line."""
@@ -79,13 +84,12 @@ def _table_problems(layout: ResultLayout, sound: list[IndexPart]) -> dict[str, s
     for part in sound:
         assert part.entries is not None
         done = pc.equal(part.entries["status"], DONE)
-        rows = part.entries["rows"]
-        tracks = pc.sum(pc.if_else(done, rows, 0)).as_py() or 0
-        failures = pc.sum(pc.if_else(done, 0, rows)).as_py() or 0
-        if tracks:
-            checks.append((part.part, TRACKS, tracks))
-        if failures:
-            checks.append((part.part, FAILURES, failures))
+        for folder, mine in ((TRACKS, done), (FAILURES, pc.invert(done))):
+            entries = part.entries.filter(mine)
+            if len(entries):
+                ids = pc.min_max(entries["video_id"]).as_py()
+                counted = Counted(pc.sum(entries["rows"]).as_py(), ids["min"], ids["max"])
+                checks.append((part.part, folder, counted))
     with ThreadPoolExecutor(FOOTER_READERS) as pool:
         found = list(pool.map(lambda check: _table_problem(layout, *check), checks))
     problems: dict[str, str] = {}
@@ -95,8 +99,25 @@ def _table_problems(layout: ResultLayout, sound: list[IndexPart]) -> dict[str, s
     return problems
 
 
-def _table_problem(layout: ResultLayout, part: str, folder: str, rows: int) -> str | None:
-    """What is wrong with a part's table, by its footer (None: it holds what is counted)."""
+@dataclass(frozen=True)
+class Counted:
+    """What an index says one of its part's tables holds.
+
+    Attributes:
+        rows: the rows of its entries; first, last: the least and greatest video id.
+    """
+
+    rows: int
+    first: str
+    last: str
+
+
+def _table_problem(layout: ResultLayout, part: str, folder: str, counted: Counted) -> str | None:
+    """What is wrong with a part's table, by its footer (None: it holds what is counted).
+
+    The footer says the rows, the columns and each row group's least and greatest video
+    id: a table of another part (other ids) is found without reading a row.
+    """
     relative = layout.file(folder, part)
     try:
         footer = layout.storage.footer(relative)
@@ -111,9 +132,29 @@ def _table_problem(layout: ResultLayout, part: str, folder: str, rows: int) -> s
         check_schema(footer.schema.to_arrow_schema(), expected, f"the {folder} table")
     except DamagedError as error:
         return f"{relative} {error}"
-    if footer.num_rows != rows:
-        return f"{relative} holds {footer.num_rows} rows where its index counts {rows}"
+    if footer.num_rows != counted.rows:
+        return f"{relative} holds {footer.num_rows} rows where its index counts {counted.rows}"
+    ids = _id_range(footer)
+    if ids is not None and ids != (counted.first, counted.last):
+        return f"{relative} holds other videos than its index names"
     return None
+
+
+def _id_range(footer: pq.FileMetaData) -> tuple[str, str] | None:
+    """(least, greatest) video id by the row groups' statistics; None where one has none."""
+    least, greatest = None, None
+    for group in range(footer.num_row_groups):
+        stats = footer.row_group(group).column(0).statistics  # video_id is the first column
+        if stats is None or not stats.has_min_max:
+            return None
+        low, high = _text(stats.min), _text(stats.max)
+        least = low if least is None else min(least, low)
+        greatest = high if greatest is None else max(greatest, high)
+    return None if least is None or greatest is None else (least, greatest)
+
+
+def _text(value: object) -> str:
+    return value.decode(errors="replace") if isinstance(value, bytes) else str(value)
 
 
 def _say(lines: list[str], print_line: Callable[..., Any]) -> None:

@@ -140,11 +140,11 @@ def run_corpus(
         layout.prepare()
         layout.write_summary(summary.as_dict())  # "running": an old summary is not this run's
         try:
-            compact(layout, summary.run, index)  # what a stopped run left superseded
+            compact(layout, summary.run, index, print_line)  # what a stopped run superseded
             if todo and shape is not None:
                 starter = _actor_starter(ray, worker, model, options, summary.run, shape)
                 _run(todo, starter, options, (layout, summary, actors, stop), print_line)
-                compact(layout, summary.run)  # what this run superseded
+                compact(layout, summary.run, print_line=print_line)  # what this run did
             layout.finish()
             summary.state = "finished"
         except BaseException as error:  # whatever stopped it, the summary says so
