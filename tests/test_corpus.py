@@ -118,7 +118,8 @@ def test_a_corpus_survives_killed_actors_records_every_failure_and_resumes(
     assert (
         counts == sorted(counts) and max(counts) == 23 and "left" not in printed.split("done")[-1]
     )
-    assert "A worker died" not in printed  # Ray's line about the killed actor stays in its logs
+    # Ray's lines (a killed actor, a dead raylet's last log lines) stay in its logs
+    assert all(re.match(r"corpus: |\d+ videos: |  ", line) for line in printed.splitlines())
 
     # every good video complete exactly once, v07 too; many videos to a part
     table = pq.read_table(out / "tracks")

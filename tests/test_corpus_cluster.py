@@ -80,7 +80,9 @@ def test_a_worker_node_lost_mid_run_loses_no_video_and_duplicates_none(
     killer.join(timeout=5)
     assert lost.is_set(), printed.getvalue()
     assert exposed == []  # gcs_server, raylets, workers, the driver: loopback only
-    assert "A worker died" not in printed.getvalue()  # Ray's own lines stay in its logs
+    # Ray's own lines (the lost node's raylet, its last log lines) stay in its logs
+    said = printed.getvalue().splitlines()
+    assert all(line.startswith(("corpus: ", "16 videos: ")) for line in said), said
     assert status == 0, printed.getvalue()
     assert "16 videos: 16 done" in printed.getvalue()
     index = pq.read_table(out / "_index")["video_id"].to_pylist()
