@@ -250,7 +250,7 @@ def test_an_actor_that_cannot_load_its_model_stops_the_job(tmp_path):
             pass
 
 
-def _pipeline_run(tmp_path, ids, script: Script, stop, progress_lines: list[str]):
+def _pipeline_run(tmp_path, ids, script: Script, progress_lines: list[str]):
     """`taptr.corpus.pipeline._run` (the driver's loop, progress lines included) on the fakes."""
     from taptr.corpus.pipeline import CorpusOptions, _run
     from taptr.corpus.progress import Summary
@@ -265,7 +265,7 @@ def _pipeline_run(tmp_path, ids, script: Script, stop, progress_lines: list[str]
     def print_line(text, **_):
         progress_lines.append(text)
 
-    context = (layout, summary, 2, stop)
+    context = (layout, summary, 2)
     _run(tasks, lambda: Actor(script, tasks), options, context, print_line)
     return summary
 
@@ -273,13 +273,11 @@ def _pipeline_run(tmp_path, ids, script: Script, stop, progress_lines: list[str]
 def test_progress_counts_written_videos_once_and_never_passes_the_total(tmp_path):
     import re
 
-    from taptr.corpus.signals import Stop
-
     ids = [f"v{i:02d}" for i in range(20)]
     # parts of 100: the videos finished before the death were never written, and run again
     script = Script(kill={"v15": (1, "track")}, part_videos=100)
     lines: list[str] = []
-    summary = _pipeline_run(tmp_path, ids, script, Stop(), lines)
+    summary = _pipeline_run(tmp_path, ids, script, lines)
     counts = [tuple(map(int, re.match(r"corpus: (\d+)/(\d+)", line).groups())) for line in lines]
     assert counts and all(total == 20 and done <= 20 for done, total in counts), lines
     assert [done for done, _ in counts] == sorted(done for done, _ in counts)  # never back
@@ -311,6 +309,6 @@ def test_a_sigterm_while_the_driver_waits_on_ray_stops_as_sigterm(tmp_path, monk
     monkeypatch.setattr(sys.modules["ray"], "wait", wait_like_ray)
     ids = [f"v{i:02d}" for i in range(12)]
     lines: list[str] = []
-    with sigterm_raises(), remembered_stop() as stop, pytest.raises(Terminated):
-        _pipeline_run(tmp_path, ids, Script(), stop, lines)
+    with sigterm_raises(), pytest.raises(Terminated), remembered_stop():
+        _pipeline_run(tmp_path, ids, Script(), lines)
     assert calls["wait"] > 4  # the actors were given their grace to write

@@ -36,7 +36,7 @@ from taptr.corpus.parts import PartLimits, PartWriter
 from taptr.corpus.progress import Progress, Summary
 from taptr.corpus.records import Finished, VideoTask
 from taptr.corpus.scheduler import JobError, Scheduler, SchedulerOptions
-from taptr.corpus.signals import Stop, remembered_stop
+from taptr.corpus.signals import remembered_stop
 from taptr.corpus.standing import standing
 from taptr.corpus.worker import TrackerWorker, WorkerOptions
 from taptr.messages import error_line, printable
@@ -135,7 +135,7 @@ def run_corpus(
     todo = plan(videos, index, options, summary)
     # nothing to track: no cluster to join (a finished corpus reruns in seconds)
     cluster = joined(ray, options.address) if todo else contextlib.nullcontext()
-    with remembered_stop() as stop, cluster:
+    with remembered_stop(), cluster:
         actors, shape = _size(ray, options) if todo else (0, None)
         layout.prepare()
         layout.write_summary(summary.as_dict())  # "running": an old summary is not this run's
@@ -143,7 +143,7 @@ def run_corpus(
             compact(layout, summary.run, index, print_line)  # what a stopped run superseded
             if todo and shape is not None:
                 starter = _actor_starter(ray, worker, model, options, summary.run, shape)
-                _run(todo, starter, options, (layout, summary, actors, stop), print_line)
+                _run(todo, starter, options, (layout, summary, actors), print_line)
                 compact(layout, summary.run, print_line=print_line)  # what this run did
             layout.finish()
             summary.state = "finished"
@@ -248,11 +248,11 @@ def _run(
     tasks: list[VideoTask],
     start_actor: Callable[[], Any],
     options: CorpusOptions,
-    context: tuple[ResultLayout, Summary, int, Stop],
+    context: tuple[ResultLayout, Summary, int],
     print_line: Callable[..., Any],
 ) -> None:
     """Runs the scheduler to the end (or to a stop); counts into the summary."""
-    layout, summary, actors, stop = context
+    layout, summary, actors = context
     progress = Progress(summary, len(tasks), options.progress_every, print_line)
 
     def on_commit(finished: Finished, attempts: int) -> None:
@@ -269,11 +269,10 @@ def _run(
     )
     try:
         _drive(scheduler, progress)
-    except KeyboardInterrupt as caught:
+    except KeyboardInterrupt:  # Ray's own for a signal inside its wait: see `signals`
         summary.state = "interrupted"
         _stop(scheduler, progress)
-        # Ray raises its own KeyboardInterrupt for a signal that came during its wait
-        raise stop.reason(caught) from None
+        raise
     except JobError as error:
         summary.state, summary.error = "failed", error_line(error)
         raise ValueError(summary.error) from None

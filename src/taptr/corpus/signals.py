@@ -27,17 +27,15 @@ class Stop:
     def __init__(self) -> None:
         self.raised: BaseException | None = None
 
-    def reason(self, caught: BaseException) -> BaseException:
-        """The exception to stop with: what a handler raised, else ``caught``."""
-        return self.raised if self.raised is not None else caught
-
 
 @contextlib.contextmanager
 def remembered_stop() -> Iterator[Stop]:
     """Wraps the SIGINT and SIGTERM handlers for the block, keeping what they raise.
 
-    Only Python handlers are wrapped (the default SIGINT handler is one); outside the
-    main thread, where handlers cannot be set, nothing is changed.
+    A KeyboardInterrupt leaving the block becomes what a handler raised last (Ray's in
+    its place, or the handler's own). Only Python handlers are wrapped (the default
+    SIGINT handler is one); outside the main thread, where handlers cannot be set,
+    nothing is changed.
     """
     stop = Stop()
     if threading.current_thread() is not threading.main_thread():
@@ -49,6 +47,10 @@ def remembered_stop() -> Iterator[Stop]:
             signal.signal(number, _remembering(handler, stop))
     try:
         yield stop
+    except KeyboardInterrupt as caught:
+        if stop.raised is None or stop.raised is caught:
+            raise
+        raise stop.raised from None  # what the process's handler meant (Terminated: 143)
     finally:
         for number, handler in previous.items():
             if callable(handler):
