@@ -34,6 +34,7 @@ from typing import ClassVar
 
 import numpy as np
 
+from taptr.api.spec import ModelSpec
 from taptr.apps.benchmark import machine
 from taptr.corpus.probe import Probed
 from taptr.corpus.records import VideoTask, VideoTracks
@@ -42,11 +43,17 @@ from taptr.corpus.worker import TrackerWorker
 CLIPS = 4
 """Distinct tiny clips the rows name."""
 
+STAND_IN = ModelSpec("tiny")
+"""The spec the actors get (the stand-in loads nothing; the digests are given)."""
+
 
 class StandInWorker(TrackerWorker):
     """`TrackerWorker` with a cached header read and fabricated tracks (no model)."""
 
     headers: ClassVar[dict[str, Probed]] = {}  # per actor process: its own copy
+
+    def load(self, model: ModelSpec) -> None:  # type: ignore[override]
+        return None  # its `_track` runs no model
 
     def _probe(self, task: VideoTask) -> Probed:
         known = self.headers.get(task.path)
@@ -104,10 +111,11 @@ def _scenario(scenario: str, count: int, folder: Path, actors: int) -> dict:
     import pyarrow as pa
     import pyarrow.parquet as pq
 
+    from taptr.corpus.damage import sound_index
     from taptr.corpus.inputs import QuerySpec
     from taptr.corpus.layout import ResultLayout
     from taptr.corpus.manifest import read_manifest
-    from taptr.corpus.pipeline import CorpusOptions, plan, sound_index, track_corpus
+    from taptr.corpus.pipeline import CorpusOptions, plan, run_corpus
     from taptr.corpus.progress import Summary
 
     paths = _clips(folder) if scenario == "done" else [str(folder / "missing.mp4")]
@@ -125,7 +133,7 @@ def _scenario(scenario: str, count: int, folder: Path, actors: int) -> dict:
     out = str(folder / "out")
     options = CorpusOptions(out=out, actors=actors, progress_every=3600, memory_per_actor=2**30)
     started = time.perf_counter()
-    summary = track_corpus(videos, _no_model, options, print_line=_quiet, worker=StandInWorker)
+    summary = run_corpus(videos, STAND_IN, options, print_line=_quiet, worker=StandInWorker)
     timings["job_s"] = time.perf_counter() - started
     expected = count if scenario == "done" else 0
     assert summary.done == expected and summary.done + summary.failed == count, summary.line()
@@ -139,7 +147,7 @@ def _scenario(scenario: str, count: int, folder: Path, actors: int) -> dict:
         assert plan(videos, sound_index(layout), CorpusOptions(out=out), rerun) == []
         result["rerun_plan_s"] = time.perf_counter() - started
         started = time.perf_counter()
-        again = track_corpus(videos, _no_model, options, print_line=_quiet, worker=StandInWorker)
+        again = run_corpus(videos, STAND_IN, options, print_line=_quiet, worker=StandInWorker)
         result["rerun_s"] = time.perf_counter() - started
         assert again.skipped == count
         result["driver_peak_rss_rerun_mib"] = _peak_mib()
@@ -168,11 +176,6 @@ def _clips(folder: Path) -> list[str]:
         frames = rng.integers(0, 256, (3, 32, 48, 3), np.uint8)
         paths.append(str(write_video(folder / f"clip{index}.mp4", frames, fps=10)))
     return paths
-
-
-def _no_model() -> None:
-    """The stand-in needs no predictor (its `_track` runs no model)."""
-    return None
 
 
 def _quiet(*_args: object, **_kwargs: object) -> None:

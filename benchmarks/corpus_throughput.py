@@ -17,7 +17,6 @@ figures measured by ``taptr bench`` and benchmarks/gpu_executions.py, docs/BENCH
 from __future__ import annotations
 
 import argparse
-import functools
 import json
 import os
 import platform
@@ -53,21 +52,19 @@ def main() -> None:
 
     import ray
 
-    import taptr
-    from taptr.corpus.pipeline import CorpusOptions, track_corpus
+    from taptr.api.spec import ModelSpec
+    from taptr.corpus.pipeline import CorpusOptions, run_corpus
 
     folder = Path(tempfile.mkdtemp(prefix="corpus-bench-"))
     videos = _write_clips(folder, args)
-    make = functools.partial(
-        taptr.Predictor.from_pretrained, args.model, device="cpu", input_size=tuple(args.size)
-    )
+    model = ModelSpec(args.model, device="cpu", input_size=tuple(args.size))
     results: dict = {
         "command": "python benchmarks/corpus_throughput.py " + " ".join(sys.argv[1:]),
         "cpu": _cpu_name(),
         "load_average_before": os.getloadavg(),
         "videos": len(videos),
         "frames_per_video": args.frames,
-        "in_process_seconds_per_frame": _in_process(make, videos, args.frames),
+        "in_process_seconds_per_frame": _in_process(model.load, videos, args.frames),
         "runs": [],
     }
     os.environ.setdefault("RAY_memory_monitor_refresh_ms", "0")  # shared machines
@@ -79,7 +76,7 @@ def main() -> None:
             cpus_per_actor=max(1, args.cpus // actors),
             progress_every=3600,
         )
-        summary = track_corpus(videos, make, options, print_line=lambda *a, **k: None)
+        summary = run_corpus(videos, model, options, print_line=lambda *a, **k: None)
         assert summary.done == len(videos), summary.failed
         results["runs"].append(
             {

@@ -78,6 +78,8 @@ SECTIONS = {
     "Training": ["taptr.train.config", "taptr.train.loop"],
     "Export": ["taptr.export"],
     "Corpora": [
+        "taptr.corpus.job",
+        "taptr.corpus.results",
         "taptr.corpus.pipeline",
         "taptr.corpus.inputs",
         "taptr.corpus.manifest",

@@ -3,10 +3,12 @@
 The main job runs once (Ray starts in seconds, actors in more): 20 videos of mixed
 lengths, one killed mid-video in its first attempt and one in every attempt (their
 actors die as the OOM killer would end them), a corrupt file, an oversized one and a
-truncated one. Then a job stopped by SIGINT and by SIGTERM in a subprocess, each resumed;
-and a job writing to an S3-compatible server on loopback. The layout's own rules are
-tested without Ray in tests/test_corpus_layout.py; losing a node in
-tests/test_corpus_cluster.py.
+truncated one. Then a job stopped by SIGINT and by SIGTERM in a subprocess while it waits
+on Ray, each resumed; and a job run from Python (`taptr.corpus.track_corpus`) writing to
+an S3-compatible server on loopback, rerun by the command. Every Ray process of these
+jobs listens and connects on loopback only (checked while they run). The layout's own
+rules are tested without Ray in tests/test_corpus_layout.py and
+tests/test_corpus_tampered.py; losing a node in tests/test_corpus_cluster.py.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ import pytest
 import taptr
 from taptr.cli.main import main
 from taptr.io.video import read_video, write_video
+from tests.corpus_helpers import ray_sockets_beyond_loopback
 from tests.helpers import panning_clip, write_truncated_clip
 
 pytest.importorskip("ray")
@@ -110,6 +113,13 @@ def test_a_corpus_survives_killed_actors_records_every_failure_and_resumes(
     assert re.search(r"23 videos: 20 done \(\d+ after their worker died\), 0 skipped", printed)
     assert "3 failed in" in printed
     assert re.search(r"corpus: 23/23 videos \(3 failed\), [\d.]+ frames/s, done", printed)
+    # the lines count written videos: never past the manifest's 23, never back
+    counts = [int(found) for found in re.findall(r"^corpus: (\d+)/23 videos", printed, re.M)]
+    assert (
+        counts == sorted(counts) and max(counts) == 23 and "left" not in printed.split("done")[-1]
+    )
+    # Ray's lines (a killed actor, a dead raylet's last log lines) stay in its logs
+    assert all(re.match(r"corpus: |\d+ videos: |  ", line) for line in printed.splitlines())
 
     # every good video complete exactly once, v07 too; many videos to a part
     table = pq.read_table(out / "tracks")
@@ -225,7 +235,9 @@ def _stop_after_a_part(job: subprocess.Popen, out: Path, number: int) -> tuple[s
         pytest.fail(f"the job ended ({job.returncode}) before a part was written: {stderr[-3000:]}")
     family = _descendants(job.pid)
     assert family  # Ray's processes run below the job's
-    job.send_signal(number)
+    exposed = ray_sockets_beyond_loopback(job.pid)
+    assert exposed == []  # the local instance listens and connects on loopback only
+    job.send_signal(number)  # the driver is waiting on Ray: its actor is tracking
     stdout, stderr = job.communicate(timeout=120)
     time.sleep(2)
     alive = [pid for pid in family if _running(pid)]
@@ -246,6 +258,7 @@ def test_sigint_and_sigterm_stop_the_job_cleanly_and_a_rerun_finishes_it(tiny_ch
         job = _start_job(folder, out)
         stdout, stderr = _stop_after_a_part(job, out, number)
         assert job.returncode == status, stderr
+        assert stderr.splitlines()[-1] == ("interrupted" if status == 130 else "terminated")
         assert "Traceback" not in stderr and "Fatal" not in stderr and "SIGABRT" not in stderr
         assert stderr.count("UNTRAINED weights") == 1  # the driver's, not one per actor
         summary = json.loads((out / "summary.json").read_text())
@@ -300,18 +313,32 @@ def s3_server(monkeypatch):
 
 
 def test_results_go_to_an_object_store(corpus, tiny_checkpoint, s3_server, quiet_ray):
+    """The Python API writes to S3 (no argparse, sockets on loopback); the CLI reruns it."""
     import pandas as pd
     import pyarrow.fs as pafs
 
+    from taptr.api.spec import ModelSpec
+    from taptr.corpus import CorpusOptions, CorpusVideo, QuerySpec, read_failures, track_corpus
+    from taptr.corpus.layout import ResultLayout
+    from taptr.corpus.storage import StoreError
+
     uri = f"s3://corpus/results?{s3_server}"
-    printed = io.StringIO()
-    argv = ["track-corpus", str(corpus / "clip00.mp4"), str(corpus / "clip01.mp4"),
-            str(corpus / "corrupt.mp4"), "--grid", "2", "--checkpoint", str(tiny_checkpoint),
-            "--device", "cpu", "--out", uri, "--actors", "1"]  # fmt: skip
-    with contextlib.redirect_stdout(printed):
-        assert main(argv) == 2
-    assert "3 videos: 2 done, 0 skipped (already done), 1 failed" in printed.getvalue()
-    assert "results in s3://corpus/results/tracks?" in printed.getvalue()
+    nothing = read_failures(uri)  # no folder on the store yet: the columns all the same
+    assert nothing.num_rows == 0 and "video_id" in nothing.schema.names
+    with pytest.raises(StoreError, match=r"(?i)cannot use s3://missing/results\?.*bucket"):
+        ResultLayout.at(f"s3://missing/results?{s3_server}").prepare()
+    names = ["clip00.mp4", "clip01.mp4", "corrupt.mp4"]
+    videos = [CorpusVideo(str(corpus / n), str(corpus / n), QuerySpec(grid=2)) for n in names]
+    exposed: list[str] = []
+
+    def print_line(text, **_):  # called while the local instance runs
+        exposed.extend(ray_sockets_beyond_loopback())
+
+    model = ModelSpec(str(tiny_checkpoint), device="cpu")
+    options = CorpusOptions(out=uri, actors=1, progress_every=0)
+    summary = track_corpus(videos, model, options, print_line=print_line)
+    assert "3 videos: 2 done, 0 skipped (already done), 1 failed" in summary.line()
+    assert exposed == []
     store, root = pafs.FileSystem.from_uri(uri)
     tracks = pd.read_parquet(f"{root}/tracks", filesystem=store)
     assert sorted(set(tracks["video_id"])) == [
@@ -320,11 +347,15 @@ def test_results_go_to_an_object_store(corpus, tiny_checkpoint, s3_server, quiet
     ]
     assert len(tracks) == 8 and list(tracks["decoded_frames"].unique()) == [3, 4]
     assert len(pd.read_parquet(f"{root}/failures", filesystem=store)) == 1
+    printed = io.StringIO()
+    argv = ["track-corpus", *(str(corpus / n) for n in names), "--grid", "2",
+            "--checkpoint", str(tiny_checkpoint), "--device", "cpu", "--out", uri]  # fmt: skip
     with contextlib.redirect_stdout(printed):
-        assert main(argv) == 2  # a rerun reads the index from the store: nothing to do
+        assert main(argv) == 2  # the CLI's digests are the API's: nothing to do
     assert "3 videos: 0 done, 2 skipped (already done), 0 failed, 1 failed before" in (
         printed.getvalue()
     )
+    assert "results in s3://corpus/results/tracks?" in printed.getvalue()
 
 
 def test_impossible_requests_fail_in_seconds_with_the_numbers(corpus, tmp_path, capsys, quiet_ray):

@@ -186,7 +186,8 @@ def test_orphan_parts_are_removed_and_superseded_rows_compacted(tmp_path):
 
 
 def test_a_rerun_skips_what_the_index_says_is_done(tmp_path):
-    from taptr.corpus.pipeline import CorpusOptions, plan, sound_index
+    from taptr.corpus.damage import sound_index
+    from taptr.corpus.pipeline import CorpusOptions, plan
 
     layout = _layout(tmp_path)
     writer = _writer(layout)
@@ -342,14 +343,14 @@ def test_a_12000_point_csv_row_is_read(tmp_path):
 
 
 def test_ids_given_twice_across_inputs_are_refused(tmp_path):
-    from taptr.corpus.pipeline import CorpusOptions, track_corpus
+    from taptr.corpus.pipeline import CorpusOptions, run_corpus
 
     twins = [
         CorpusVideo("x", "a.mp4", QuerySpec(grid=2)),
         CorpusVideo("x", "b.mp4", QuerySpec(grid=2)),
     ]
     with pytest.raises(ValueError, match="the id 'x' is given to videos 1 and 2"):
-        track_corpus(twins, lambda: None, CorpusOptions(out=str(tmp_path)))
+        run_corpus(twins, None, CorpusOptions(out=str(tmp_path)))
 
 
 class _FakeRay:
@@ -446,7 +447,8 @@ def test_without_ray_the_command_says_how_to_install_it(monkeypatch, tmp_path, c
 
 
 def test_a_part_cut_after_it_was_written_is_not_trusted(tmp_path, capsys):
-    from taptr.corpus.pipeline import CorpusOptions, plan, sound_index
+    from taptr.corpus.damage import sound_index
+    from taptr.corpus.pipeline import CorpusOptions, plan
 
     layout = _layout(tmp_path)
     for index, name in enumerate("ab"):
@@ -456,7 +458,8 @@ def test_a_part_cut_after_it_was_written_is_not_trusted(tmp_path, capsys):
     damaged = sorted((tmp_path / "out" / "tracks").iterdir())[0]
     damaged.write_bytes(damaged.read_bytes()[:20])  # cut to 20 bytes
     index = sound_index(layout)
-    assert "removed 1 damaged part(s)" in capsys.readouterr().out
+    said = capsys.readouterr().out
+    assert f"removed a damaged part: tracks/{damaged.name} does not read as a Parquet" in said
     assert not damaged.exists() and len(index) == 1
     videos = [CorpusVideo(name, "x", QuerySpec(grid=2), "d" * 16) for name in "ab"]
     summary = Summary(total=2)

@@ -69,6 +69,7 @@ class Actor:
         self.ready = _Method(lambda: Ref(self.parts.writer))
         self.run = _Method(lambda batch: Generator(self._run(batch)))
         self.flush = _Method(lambda: Generator(self._flush()))
+        self.stop = _Method(lambda: None)  # its calls are computed up front: nothing to end
 
     def _run(self, batch):
         events = []
@@ -156,7 +157,6 @@ def _run(tmp_path, ids, script: Script, actors=2, max_attempts=3):
         layout,
         PartWriter(layout, "20261207T000000000000Z"),
         SchedulerOptions(actors, max_attempts, start_timeout=60),
-        lambda finished: None,
         on_commit,
     )
     scheduler.ray = FakeRay
@@ -242,10 +242,73 @@ def test_an_actor_that_cannot_load_its_model_stops_the_job(tmp_path):
         layout,
         PartWriter(layout, "20261207T000000000000Z"),
         SchedulerOptions(1),
-        lambda f: None,
         lambda f, a: None,
     )
     scheduler.ray = FakeRay
     with pytest.raises(JobError, match="could not start: ValueError: cannot read checkpoint"):
         while scheduler.step():
             pass
+
+
+def _pipeline_run(tmp_path, ids, script: Script, progress_lines: list[str]):
+    """`taptr.corpus.pipeline._run` (the driver's loop, progress lines included) on the fakes."""
+    from taptr.corpus.pipeline import CorpusOptions, _run
+    from taptr.corpus.progress import Summary
+
+    layout = ResultLayout.at(str(tmp_path / "out"))
+    layout.prepare()
+    script.layout = layout
+    tasks = [VideoTask(i, v, f"{v}.mp4", "{}", "d" * 16) for i, v in enumerate(ids)]
+    summary = Summary(total=len(ids), run="20261207T000000000000Z")
+    options = CorpusOptions(out=str(tmp_path / "out"), progress_every=0)
+
+    def print_line(text, **_):
+        progress_lines.append(text)
+
+    context = (layout, summary, 2)
+    _run(tasks, lambda: Actor(script, tasks), options, context, print_line)
+    return summary
+
+
+def test_progress_counts_written_videos_once_and_never_passes_the_total(tmp_path):
+    import re
+
+    ids = [f"v{i:02d}" for i in range(20)]
+    # parts of 100: the videos finished before the death were never written, and run again
+    script = Script(kill={"v15": (1, "track")}, part_videos=100)
+    lines: list[str] = []
+    summary = _pipeline_run(tmp_path, ids, script, lines)
+    counts = [tuple(map(int, re.match(r"corpus: (\d+)/(\d+)", line).groups())) for line in lines]
+    assert counts and all(total == 20 and done <= 20 for done, total in counts), lines
+    assert [done for done, _ in counts] == sorted(done for done, _ in counts)  # never back
+    assert lines[-1].startswith("corpus: 20/20 videos (0 failed)") and lines[-1].endswith("done")
+    assert "-" not in " ".join(lines)  # no negative time left
+    assert summary.done == 20
+
+
+def test_a_sigterm_while_the_driver_waits_on_ray_stops_as_sigterm(tmp_path, monkeypatch):
+    import signal
+
+    from taptr.cli.main import Terminated, sigterm_raises
+    from taptr.corpus.signals import remembered_stop
+
+    calls = {"wait": 0}
+
+    def wait_like_ray(items, num_returns, timeout):
+        calls["wait"] += 1
+        if calls["wait"] == 4:
+            try:
+                signal.raise_signal(signal.SIGTERM)  # its handler runs inside the wait
+            except BaseException:
+                raise KeyboardInterrupt from None  # what Ray raises in its place
+        return items[:1], items[1:]
+
+    monkeypatch.setattr(FakeRay, "wait", staticmethod(wait_like_ray))
+    import sys
+
+    monkeypatch.setattr(sys.modules["ray"], "wait", wait_like_ray)
+    ids = [f"v{i:02d}" for i in range(12)]
+    lines: list[str] = []
+    with sigterm_raises(), pytest.raises(Terminated), remembered_stop():
+        _pipeline_run(tmp_path, ids, Script(), lines)
+    assert calls["wait"] > 4  # the actors were given their grace to write

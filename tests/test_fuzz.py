@@ -16,10 +16,15 @@ import warnings
 import pytest
 from hypothesis import given, settings
 
+from tests import fuzz_corpus as corpus
 from tests import fuzz_downloads as downloads
 from tests import fuzz_hostile as hostile
 from tests import fuzz_options as options
 from tests import fuzz_targets as targets
+
+# each corpus example writes a folder of parts and reruns over it: a quarter of the
+# profile's examples, at least 15 (``--hypothesis-profile=long`` runs 500 of each)
+CORPUS_EXAMPLES = max(15, settings.default.max_examples // 4)
 
 
 def _run(target, value) -> None:
@@ -113,6 +118,27 @@ def test_fuzz_bench_options(argv):
 @given(downloads.kept_timings())
 def test_fuzz_kept_capture_timings(value):
     _run(downloads.run_over_kept_timing, value)
+
+
+@settings(max_examples=CORPUS_EXAMPLES)
+@given(corpus.index_tamperings())
+def test_fuzz_corpus_tampered_index(case):
+    pytest.importorskip("pyarrow")
+    _run(corpus.tamper_index, case)
+
+
+@settings(max_examples=CORPUS_EXAMPLES)
+@given(corpus.part_tamperings())
+def test_fuzz_corpus_tampered_parts(case):
+    pytest.importorskip("pyarrow")
+    _run(corpus.tamper_part, case)
+
+
+@settings(max_examples=CORPUS_EXAMPLES)
+@given(corpus.folder_tamperings())
+def test_fuzz_corpus_tampered_marker_and_links(case):
+    pytest.importorskip("pyarrow")
+    _run(corpus.tamper_folder, case)
 
 
 # each example serves a download: a quarter of the profile's examples, at least 15

@@ -94,3 +94,23 @@ def test_write_sample_video(tmp_path, clip):
     assert (info.num_frames, info.fps, info.height, info.width) == (48, 24.0, 256, 256)
     decoded = read_video(path, stride=20)
     assert np.abs(decoded.astype(int) - clip.video[::20]).mean() < 8  # yuv420p chroma on edges
+
+
+def test_the_command_varies_length_size_and_seed(tmp_path, capsys):
+    from taptr.cli.main import main
+
+    path = tmp_path / "short.mp4"
+    assert (
+        main(["sample-video", str(path), "--frames", "5", "--size", "40", "56", "--seed", "3"]) == 0
+    )
+    info = video_info(path)
+    assert (info.num_frames, info.height, info.width, info.fps) == (5, 40, 56, 24.0)
+    expected = make_sample_clip(num_frames=5, height=40, width=56, seed=3).video
+    assert np.abs(read_video(path).astype(int) - expected).mean() < 8  # the same frames, encoded
+    for argv, message in (
+        (["--frames", "1"], "--frames must lie in [2, 100000], got 1"),
+        (["--size", "8", "64"], "--size 8 64: each side must lie in [16, 4096]"),
+    ):
+        assert main(["sample-video", str(tmp_path / "x.mp4"), *argv]) == 2
+        assert message in capsys.readouterr().err
+    assert not (tmp_path / "x.mp4").exists()

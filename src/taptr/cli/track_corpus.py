@@ -3,14 +3,12 @@
 from __future__ import annotations
 
 import argparse
-import copy
-import functools
 from typing import TYPE_CHECKING
 
 from taptr.cli.common.model_options import (
     add_model_arguments,
     check_model_arguments,
-    load_predictor,
+    model_spec,
 )
 from taptr.cli.common.options import check_at_least, check_output_folder
 from taptr.cli.common.points import add_query_arguments, listed_points
@@ -170,26 +168,23 @@ def _add_cluster_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Tracks the corpus; prints progress lines and a summary; 2 if a video has failed."""
-    from taptr.corpus.cluster import actor_memory, check_address, require_ray
+    """Tracks the corpus (`taptr.corpus.track_corpus`); prints progress lines and a summary.
+
+    Returns 2 when a video has failed, now or in an earlier run with these settings.
+    """
+    from taptr.corpus.cluster import check_address, require_ray
+    from taptr.corpus.job import track_corpus
     from taptr.corpus.layout import ResultLayout
     from taptr.corpus.migrate import migrate
-    from taptr.corpus.pipeline import track_corpus
-    from taptr.corpus.settings import TrackSettings, with_digests
 
     _check_arguments(args)
-    require_ray()  # before the model loads: say at once how to install it
+    require_ray()  # before the manifests are read: say at once how to install it
     check_address(args.address)  # and that the cluster cannot be reached
     videos = corpus_videos(args)
-    predictor = load_predictor(_on_cpu(args))  # the settings, as the actors will have them
-    settings = TrackSettings(args.dtype, args.max_frames, args.backward)
-    videos = with_digests(videos, predictor, settings)
-    memory = _gib(args.memory_per_actor) or actor_memory(predictor)
-    del predictor
     layout = ResultLayout.at(args.out)
     if args.migrate:
         print(f"moved {migrate(layout)} videos of the old layout into parts", flush=True)
-    summary = track_corpus(videos, functools.partial(load_predictor, args), _options(args, memory))
+    summary = track_corpus(videos, model_spec(args), _options(args))
     print(summary.line() + f"; results in {layout.tracks}", flush=True)
     for line in summary.failure_lines(layout.failures):
         print(line)
@@ -201,7 +196,7 @@ def run(args: argparse.Namespace) -> int:
     return 2 if summary.failed or summary.failed_before else 0
 
 
-def _options(args: argparse.Namespace, memory: int) -> CorpusOptions:
+def _options(args: argparse.Namespace) -> CorpusOptions:
     from taptr.corpus.parts import PartLimits
     from taptr.corpus.pipeline import CorpusOptions
 
@@ -210,7 +205,7 @@ def _options(args: argparse.Namespace, memory: int) -> CorpusOptions:
         actors=args.actors,
         cpus_per_actor=args.cpus_per_actor,
         gpus_per_actor=args.gpus_per_actor,
-        memory_per_actor=memory,
+        memory_per_actor=_gib(args.memory_per_actor),
         max_attempts=args.attempts,
         max_frames=args.max_frames,
         max_video_frames=args.max_video_frames,
@@ -226,9 +221,10 @@ def _options(args: argparse.Namespace, memory: int) -> CorpusOptions:
 
 
 def _check_arguments(args: argparse.Namespace) -> None:
-    from taptr.corpus.storage import URI
+    from taptr.corpus.storage import check_scheme, uri_scheme
 
-    if not URI.match(args.out):
+    check_scheme(args.out)
+    if uri_scheme(args.out) is None:
         check_output_folder(args.out)
     check_model_arguments(args)
     check_at_least(args.query_frame, 0, "--query-frame")
@@ -294,11 +290,3 @@ def default_queries(args: argparse.Namespace) -> QuerySpec | None:
 
 def _gib(value: float | None) -> int | None:
     return None if value is None else int(value * 2**30)
-
-
-def _on_cpu(args: argparse.Namespace) -> argparse.Namespace:
-    """The options with the model on the CPU, uncompiled (the driver only reads settings)."""
-    cpu = copy.copy(args)
-    cpu.device, cpu.compile, cpu.frames_per_call, cpu.kernel = "cpu", False, 1, "gather"
-    cpu.capture = "off"
-    return cpu

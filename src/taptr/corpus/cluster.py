@@ -23,7 +23,12 @@ from typing import TYPE_CHECKING, Any
 from taptr.messages import error_line
 
 if TYPE_CHECKING:
-    from taptr.api.predictor import Predictor
+    from taptr.corpus.model_facts import ModelFacts
+
+logger = logging.getLogger(__name__)
+
+LOOPBACK_SWITCH = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
+"""Ray's variable that, at ``0``, keeps a node's address and ports on loopback."""
 
 CONNECT_SECONDS = 10.0
 """How long the cluster's address may take to accept a connection."""
@@ -92,10 +97,12 @@ def check_address(address: str | None) -> None:
 def joined(ray: ModuleType, address: str | None) -> Iterator[None]:
     """Joins the cluster (or starts a local instance) for the block, and leaves it.
 
-    A local instance started here is stopped at the end, Ctrl-C and SIGTERM included,
-    so that no Ray process of the job outlives it. The process's own SIGINT and SIGTERM
-    handlers are kept (Ray's would end the process with a native stack), and its
-    ``print``: Ray swaps in its own when it prints a worker's death, and leaves it.
+    A local instance started here listens on loopback only (`on_loopback`) and is stopped
+    at the end, Ctrl-C and SIGTERM included, so that no Ray process of the job outlives
+    it. The process's own SIGINT and SIGTERM handlers are kept (Ray's would end the
+    process with a native stack), and its ``print``: Ray swaps in its own when it prints a
+    worker's death, and leaves it. Those lines (``(raylet) A worker died ...``) go to the
+    debug log: the job counts deaths itself.
 
     Raises:
         ValueError: the cluster refuses the connection (one line).
@@ -104,46 +111,157 @@ def joined(ray: ModuleType, address: str | None) -> Iterator[None]:
     handlers = {number: signal.getsignal(number) for number in (signal.SIGINT, signal.SIGTERM)}
     own_print = builtins.print
     started_here = not ray.is_initialized()
-    if started_here:
+    local = started_here and starts_local(address)
+    with _worker_deaths_logged():
+        if started_here:
+            # a cluster on loopback is joined as one: Ray would name it by the host's address
+            loopback = local or on_loopback_host(address or os.environ.get("RAY_ADDRESS"))
+            with on_loopback() if loopback else contextlib.nullcontext():
+                _init(ray, address)
+        _restore(handlers)
+        if local:
+            _say_if_exposed(ray)
         try:
-            ray.init(
-                address=address,
-                log_to_driver=False,  # the actors' lines are in Ray's logs; ours are events
-                logging_level=logging.WARNING,
-                configure_logging=True,
-            )
-        except (ConnectionError, ray.exceptions.RayError, RuntimeError) as error:
-            where = address or os.environ.get("RAY_ADDRESS") or "a local instance"
-            raise ValueError(
-                f"cannot join the Ray cluster ({where}): {error_line(error)}"
-            ) from None
-    _restore(handlers)
+            yield
+        finally:
+            if started_here:
+                ray.shutdown()
+            _restore(handlers)
+            builtins.print = own_print
+
+
+def starts_local(address: str | None) -> bool:
+    """Whether ``ray.init(address=address)`` starts a local instance rather than joining one."""
+    if address is None:
+        return not os.environ.get("RAY_ADDRESS")
+    return address == "local"
+
+
+def on_loopback_host(address: str | None) -> bool:
+    """Whether ``address`` (``HOST:PORT``) names a cluster on this host's loopback."""
+    import ipaddress
+
+    if not address or "://" in address or ":" not in address:
+        return False  # auto, local, Ray Client (ray://): Ray resolves them itself
+    host = address.rpartition(":")[0].strip("[]")
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+@contextlib.contextmanager
+def on_loopback() -> Iterator[None]:
+    """Ray instances started in the block give their node 127.0.0.1: every port on loopback.
+
+    Ray 2.60 gives a node the host's network address, and its gcs_server, raylet,
+    workers and driver then listen on every interface; ``ray.init(_node_ip_address=
+    "127.0.0.1")`` and ``--node-ip-address=127.0.0.1`` are turned back into the host's
+    address (``resolve_ip_for_localhost``). It keeps a node on loopback only where
+    multi-node clusters are off: `LOOPBACK_SWITCH` ``=0``, its default on Windows and
+    macOS. The processes started in the block inherit the variable; the driver's copy of
+    the switch, read when Ray was imported, is set for the block.
+    """
+    import importlib
+
+    try:
+        constants: Any = importlib.import_module("ray._private.ray_constants")
+    except ImportError:  # another Ray: the variable alone, and `_say_if_exposed` checks
+        constants = None
+    saved_variable = os.environ.get(LOOPBACK_SWITCH)
+    saved = getattr(constants, "ENABLE_RAY_CLUSTER", None)
+    os.environ[LOOPBACK_SWITCH] = "0"
+    if saved is not None:
+        constants.ENABLE_RAY_CLUSTER = False
     try:
         yield
     finally:
-        if started_here:
-            ray.shutdown()
-        _restore(handlers)
-        builtins.print = own_print
+        if saved is not None:
+            constants.ENABLE_RAY_CLUSTER = saved
+        if saved_variable is None:
+            os.environ.pop(LOOPBACK_SWITCH, None)
+        else:
+            os.environ[LOOPBACK_SWITCH] = saved_variable
 
 
-def actor_memory(predictor: Predictor) -> int:
-    """Bytes one tracker actor needs: its process and a typical clip's run (`TYPICAL_FRAMES`)."""
+def _init(ray: ModuleType, address: str | None) -> None:
+    try:
+        ray.init(
+            address=address,
+            log_to_driver=False,  # the actors' lines are in Ray's logs; ours are events
+            logging_level=logging.WARNING,
+            configure_logging=True,
+        )
+    except (ConnectionError, ray.exceptions.RayError, RuntimeError) as error:
+        where = address or os.environ.get("RAY_ADDRESS") or "a local instance"
+        raise ValueError(f"cannot join the Ray cluster ({where}): {error_line(error)}") from None
+
+
+def _say_if_exposed(ray: ModuleType) -> None:
+    """One line when a local instance could not be kept on loopback, and what to do."""
+    import ipaddress
+
+    node = ray.util.get_node_ip_address()
+    with contextlib.suppress(ValueError):
+        if ipaddress.ip_address(node.strip("[]")).is_loopback:
+            return
+    logger.warning(
+        "the local Ray instance listens on %s, not only on loopback: its ports are open to "
+        "the network; block them with a firewall, or start Ray on a trusted network "
+        "yourself and pass --address (docs/CORPUS.md, What a cluster exposes)",
+        node,
+    )
+
+
+@contextlib.contextmanager
+def _worker_deaths_logged() -> Iterator[None]:
+    """Ray's lines about dead workers to the debug log instead of the job's stdout.
+
+    The driver's error listener prints them (``(raylet) A worker died or was killed
+    ...``) even with ``log_to_driver=False``, through ``print_to_stdstream``.
+    """
+    import importlib
+
+    try:
+        worker: Any = importlib.import_module("ray._private.worker")
+    except ImportError:
+        worker = None
+    original = getattr(worker, "print_to_stdstream", None)
+    if original is None:
+        yield
+        return
+
+    def to_log(data: dict[str, Any], ignore_prefix: bool = False) -> None:
+        for line in data.get("lines", []):
+            logger.debug("ray (%s): %s", data.get("pid"), line)
+
+    worker.print_to_stdstream = to_log
+    try:
+        yield
+    finally:
+        worker.print_to_stdstream = original
+
+
+def actor_memory(facts: ModelFacts) -> int:
+    """Bytes one tracker actor needs: its process, weights and a typical clip's run.
+
+    Args:
+        facts: the tracker (`taptr.corpus.model_facts`): its config, input size, context
+            points and weights' size, read without building it.
+    """
     from taptr.memory_estimate import estimate_tracking
 
-    config = predictor.model.config
-    weights = sum(p.numel() * p.element_size() for p in predictor.model.parameters())
-    if config is None:
-        return PROCESS_BYTES + weights
     run = estimate_tracking(
-        config,
-        input_size=predictor.input_size,
+        facts.config,
+        input_size=facts.input_size,
         num_frames=TYPICAL_FRAMES,
-        num_points=TYPICAL_POINTS + predictor.context_points,
+        num_points=TYPICAL_POINTS + facts.context_points,
         frame_size=TYPICAL_SIZE,
         whole_video=False,
     )
-    return PROCESS_BYTES + weights + run.total
+    return PROCESS_BYTES + facts.weight_bytes + run.total
 
 
 def plan_actors(ray: ModuleType, actors: int | None, shape: ActorShape) -> int:

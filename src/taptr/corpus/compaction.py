@@ -4,13 +4,16 @@ A video tracked again has entries in two parts; only its standing ones are kept
 (`taptr.corpus.standing`). A part whose every entry is superseded is removed; a part with
 some is rewritten without them under a new name, its index last, then the old part is
 removed. A run killed in the middle leaves both copies, and the next compaction keeps the
-newer name.
+newer name. The rows of a part being rewritten are read, so each kept video's rows are
+counted there against its index: a part that does not hold them is removed whole, named
+in one line, rather than rewritten (its videos only it held count as not done).
 """
 
 from __future__ import annotations
 
 from collections import defaultdict
-from typing import TYPE_CHECKING
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 from taptr.corpus.layout import FAILURES, INDEX, TRACKS, ResultLayout, new_writer, part_name
 from taptr.corpus.records import DONE, FAILED
@@ -36,14 +39,20 @@ def kept_entries(index: pa.Table) -> dict[str, set[tuple[str, str]]]:
     return kept
 
 
-def compact(layout: ResultLayout, run: str, index: pa.Table | None = None) -> int:
+def compact(
+    layout: ResultLayout,
+    run: str,
+    index: pa.Table | None = None,
+    print_line: Callable[..., Any] | None = None,
+) -> int:
     """Removes superseded rows from the dataset; returns the parts rewritten or removed.
 
     Args:
         layout: the output folder (no actor writing to it).
         run: the current run (names the rewritten parts).
-        index: the folder's index as just read (`ResultLayout.read_index`), if the
-            caller holds it; else it is read here.
+        index: the folder's index as just read (`taptr.corpus.damage.sound_index`), if
+            the caller holds it; else it is read here.
+        print_line: where a part found damaged while it is rewritten is named.
     """
     import pyarrow.compute as pc
 
@@ -60,8 +69,13 @@ def compact(layout: ResultLayout, run: str, index: pa.Table | None = None) -> in
         if len(stay) == len(entries):
             continue
         if stay:
-            _rewrite(layout, part, entries, stay, part_name(run, writer, seq))
-            seq += 1
+            problem = _rewrite(layout, part, entries, stay, part_name(run, writer, seq))
+            seq += problem is None
+            if problem is not None and print_line is not None:
+                print_line(
+                    f"removed a damaged part: {problem}; the videos only it held count as not done",
+                    flush=True,
+                )
         layout.remove_part(part)
         changed += 1
     return changed
@@ -69,20 +83,38 @@ def compact(layout: ResultLayout, run: str, index: pa.Table | None = None) -> in
 
 def _rewrite(
     layout: ResultLayout, part: str, entries: pa.Table, stay: set[tuple[str, str]], new: str
-) -> None:
-    """Publishes the kept rows of ``part`` as the part ``new`` (its index last)."""
+) -> str | None:
+    """Publishes the kept rows of ``part`` as the part ``new`` (its index last).
+
+    Returns:
+        None, or what is wrong with the part when a table does not hold each kept
+        video's rows as its index counts them (nothing is published then).
+    """
     import pyarrow as pa
     import pyarrow.compute as pc
-    import pyarrow.parquet as pq
 
-    storage = layout.storage
+    counts = dict(
+        zip(
+            zip(entries["video_id"].to_pylist(), entries["status"].to_pylist(), strict=True),
+            entries["rows"].to_pylist(),
+            strict=True,
+        )
+    )
+    tables = {}
     for folder, status in ((TRACKS, DONE), (FAILURES, FAILED)):
-        ids = pa.array(sorted(video for video, kind in stay if kind == status), pa.string())
-        if len(ids) == 0:
+        ids = sorted(video for video, kind in stay if kind == status)
+        if not ids:
             continue
-        with storage.fs.open_input_file(storage.path(layout.file(folder, part))) as stream:
-            table = pq.read_table(stream)
-        layout.publish(folder, new, table.filter(pc.is_in(table["video_id"], value_set=ids)))
+        relative = layout.file(folder, part)
+        table = layout.storage.read_table(relative)
+        table = table.filter(pc.is_in(table["video_id"], value_set=pa.array(ids, pa.string())))
+        found = table.group_by("video_id").aggregate([("video_id", "count")]).to_pydict()
+        rows = dict(zip(found["video_id"], found["video_id_count"], strict=True))
+        if any(rows.get(video) != counts[(video, status)] for video in ids):
+            return f"{relative} does not hold the rows its index counts for its videos"
+        tables[folder] = table
+    for folder, table in tables.items():
+        layout.publish(folder, new, table)
     keep = [
         (video, status) in stay
         for video, status in zip(
@@ -92,3 +124,4 @@ def _rewrite(
     moved = entries.filter(pa.array(keep)).drop_columns(["part"])
     moved = moved.append_column("part", pa.array([new] * len(moved), pa.string()))
     layout.publish(INDEX, new, moved)
+    return None

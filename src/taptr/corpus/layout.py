@@ -36,6 +36,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+from taptr.corpus.index_check import IndexPart, read_index_part
 from taptr.corpus.schema import (
     SCHEMA_KEY,
     SCHEMA_VERSION,
@@ -43,7 +44,7 @@ from taptr.corpus.schema import (
     index_schema,
     tracks_schema,
 )
-from taptr.corpus.storage import STAGING, Storage
+from taptr.corpus.storage import STAGING, Storage, StoreError
 
 if TYPE_CHECKING:
     import pyarrow as pa
@@ -101,7 +102,14 @@ class ResultLayout:
         return cls(Storage(out))
 
     def file(self, folder: str, part: str) -> str:
-        """The path of a part's file in ``folder`` (relative to OUT)."""
+        """The path of a part's file in ``folder`` (relative to OUT).
+
+        Raises:
+            ValueError: ``part`` is not a name the layout makes (`PART`): whatever a file
+                says, no other path is ever opened, renamed or removed.
+        """
+        if folder not in (TRACKS, FAILURES, INDEX) or not PART.match(part):
+            raise ValueError(f"{folder}/{part!r} is not a part of a corpus's layout")
         return f"{folder}/{part}.parquet"
 
     @property
@@ -167,6 +175,7 @@ class ResultLayout:
 
         Raises:
             OSError: the file read back does not hold the rows written.
+            StoreError: the store did not answer.
         """
         import pyarrow as pa
         import pyarrow.parquet as pq
@@ -177,9 +186,10 @@ class ResultLayout:
         self.storage.write(relative, sink.getvalue())
         path = self.storage.path(relative)
         try:
-            with self.storage.fs.open_input_file(path) as stream:
-                footer = pq.read_metadata(stream)
-        except (ValueError, OSError) as error:  # ArrowInvalid: no readable footer
+            footer = self.storage.footer(relative)
+        except StoreError:
+            raise
+        except (ValueError, FileNotFoundError) as error:  # ArrowInvalid: no readable footer
             self.storage.delete(relative)  # readers of the dataset must not meet it
             raise OSError(f"{path} does not read back: {' '.join(str(error).split())}") from None
         version = (footer.metadata or {}).get(SCHEMA_KEY)
@@ -191,50 +201,31 @@ class ResultLayout:
             )
 
     def read_index(self, parts: Iterable[str] | None = None) -> pa.Table:
-        """The index rows of every part (or of ``parts``) as one table (`index_schema`)."""
-        import pyarrow.dataset as ds
+        """The entries of every sound index file (or of ``parts``) as one table.
 
-        if parts is None:
-            parts = self.parts(INDEX)
-        files = [self.storage.path(self.file(INDEX, part)) for part in parts]
-        if not files:
-            return index_schema().empty_table()
-        dataset = ds.dataset(
-            files, schema=index_schema(), format="parquet", filesystem=self.storage.fs
-        )
-        return dataset.to_table()
+        Damaged files (`taptr.corpus.index_check`) are left out, not removed: a run's
+        start removes them (`taptr.corpus.damage.sound_index`).
+        """
+        import pyarrow as pa
 
-    def damaged_parts(self, index: pa.Table) -> list[str]:
-        """Parts whose files do not read back with the rows their index names.
+        found = [part.entries for part in self.index_parts(parts) if part.entries is not None]
+        return pa.concat_tables(found) if found else index_schema().empty_table()
 
-        A part cut or changed after it was published (a copy gone wrong, a full disk,
-        someone's edit) would otherwise be trusted by its index; its footer says. Footers
-        are read a few at a time (an object store answers each in milliseconds).
+    def index_parts(self, parts: Iterable[str] | None = None) -> list[IndexPart]:
+        """Every index file (or those of ``parts``) read and checked, a few at a time.
+
+        An object store answers each read in milliseconds; thousands of parts are read
+        `FOOTER_READERS` at once.
         """
         from concurrent.futures import ThreadPoolExecutor
 
-        from taptr.corpus.records import DONE
+        names = self.parts(INDEX) if parts is None else list(parts)
 
-        # one row per part and status (thousands), not one Python object per video
-        sums = index.group_by(["part", "status"]).aggregate([("rows", "sum")])
-        expected: dict[tuple[str, str], int] = {}
-        columns = (sums[name].to_pylist() for name in ("part", "status", "rows_sum"))
-        for part, status, rows in zip(*columns, strict=True):
-            expected[(TRACKS if status == DONE else FAILURES, part)] = rows
+        def read(part: str) -> IndexPart:
+            return read_index_part(self.storage, self.file(INDEX, part), part)
+
         with ThreadPoolExecutor(FOOTER_READERS) as pool:
-            sound = dict(zip(expected, pool.map(self._holds, expected.items()), strict=True))
-        return sorted({part for (_, part), ok in sound.items() if not ok})
-
-    def _holds(self, item: tuple[tuple[str, str], int]) -> bool:
-        """Whether a part's file reads back with ``rows`` rows."""
-        import pyarrow.parquet as pq
-
-        (folder, part), rows = item
-        try:
-            with self.storage.fs.open_input_file(self.storage.path(self.file(folder, part))) as f:
-                return pq.read_metadata(f).num_rows == rows
-        except (ValueError, OSError):
-            return False
+            return list(pool.map(read, names))
 
     def parts(self, folder: str, writer: str | None = None) -> list[str]:
         """The names of the parts in ``folder`` (of one ``writer``), sorted."""
@@ -258,6 +249,31 @@ class ResultLayout:
                     self.storage.delete(self.file(folder, part))
                     orphans.append(part)
         return orphans
+
+    def remove_unnamed(self, entries: pa.Table) -> list[str]:
+        """Removes the tracks and failures files no entry names; returns them (relative).
+
+        A file whose index is gone or damaged, or whose index has no entry of its kind
+        (a planted or left-over file), would otherwise be read with the dataset. Only
+        when no actor is writing.
+
+        Args:
+            entries: the sound index entries (`taptr.corpus.damage.sound_index`).
+        """
+        from taptr.corpus.records import DONE
+
+        named: dict[str, set[str]] = {TRACKS: set(), FAILURES: set()}
+        kinds = entries.select(["part", "status"]).group_by(["part", "status"]).aggregate([])
+        pairs = zip(kinds["part"].to_pylist(), kinds["status"].to_pylist(), strict=True)
+        for part, status in pairs:
+            named[TRACKS if status == DONE else FAILURES].add(part)
+        removed = []
+        for folder in (TRACKS, FAILURES):
+            for part in self.parts(folder):
+                if part not in named[folder]:
+                    self.storage.delete(self.file(folder, part))
+                    removed.append(self.file(folder, part))
+        return removed
 
     def finish(self) -> None:
         """Removes orphan parts and staged files (no actor is writing any more)."""
@@ -287,10 +303,11 @@ class ResultLayout:
         import pyarrow.dataset as ds
 
         files = [self.storage.path(self.file(folder, part)) for part in self.parts(folder)]
-        if not files:
+        if not files:  # nothing written (no failure at all): the columns all the same
             return schema.empty_table()
-        dataset = ds.dataset(files, schema=schema, format="parquet", filesystem=self.storage.fs)
-        return dataset.to_table()
+        with self.storage.answering():
+            fs = self.storage.fs
+            return ds.dataset(files, schema=schema, format="parquet", filesystem=fs).to_table()
 
     def _shown(self, folder: str) -> str:
         out = self.storage.out.rstrip("/")
@@ -304,9 +321,13 @@ class ResultLayout:
             return
         try:
             marker = json.loads(self.storage.read(MARKER, MAX_MARKER_BYTES))
-            version = int(marker["layout"])
-        except (ValueError, KeyError, TypeError, RecursionError):
-            raise ValueError(f"{self.storage.path(MARKER)} is not a taptr corpus marker") from None
+            version = marker["layout"]
+        except StoreError:
+            raise
+        except (ValueError, KeyError, TypeError, RecursionError):  # JSONDecodeError, too big
+            version = None
+        if type(version) is not int:  # 1e999, "2", true, null: not what taptr writes
+            raise ValueError(f"{self.storage.path(MARKER)} is not a taptr corpus marker")
         if version > LAYOUT_VERSION:
             raise ValueError(
                 f"{self.storage.out} was written by a newer taptr (layout {version}; this "

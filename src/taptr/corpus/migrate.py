@@ -60,10 +60,8 @@ def migrate(layout: ResultLayout) -> int:
 def _upgraded(layout: ResultLayout, relative: str, status: str) -> pa.Table:
     """An old file's rows with the columns of schema version 2."""
     import pyarrow as pa
-    import pyarrow.parquet as pq
 
-    with layout.storage.fs.open_input_file(layout.storage.path(relative)) as stream:
-        table = pq.read_table(stream)
+    table = layout.storage.read_table(relative)
     schema = tracks_schema() if status == DONE else failures_schema()
     nulls = pa.nulls(len(table), pa.int32())
     decoded = table["num_frames"] if status == DONE else nulls

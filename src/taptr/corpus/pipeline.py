@@ -1,4 +1,4 @@
-"""`track_corpus`: a corpus on a Ray cluster, resumable, every video accounted for.
+"""`run_corpus`: a corpus on a Ray cluster, resumable, every video accounted for.
 
 The run: check the output folder (`taptr.corpus.layout`) → leave out the videos its
 index says are done (or failed) with the same settings → join the cluster and size the
@@ -6,7 +6,8 @@ actors before Ray could wait on them (`taptr.corpus.cluster`) → hand the rest 
 actors (`taptr.corpus.scheduler`, `taptr.corpus.worker`) → remove superseded rows
 (`taptr.corpus.compaction`) → write the summary. Ctrl-C or SIGTERM stop handing out
 videos, give the actors `STOP_GRACE_SECONDS` to write what they hold, write the summary
-(``state: interrupted``) and end the job's Ray processes before the exception goes on.
+(``state: interrupted``) and end the job's Ray processes before the exception goes on;
+any other error ends it as ``failed``, with the error.
 """
 
 from __future__ import annotations
@@ -28,12 +29,14 @@ from taptr.corpus.cluster import (
     require_ray,
 )
 from taptr.corpus.compaction import compact
+from taptr.corpus.damage import sound_index
 from taptr.corpus.inputs import CorpusVideo
 from taptr.corpus.layout import ResultLayout, new_run
 from taptr.corpus.parts import PartLimits, PartWriter
 from taptr.corpus.progress import Progress, Summary
 from taptr.corpus.records import Finished, VideoTask
 from taptr.corpus.scheduler import JobError, Scheduler, SchedulerOptions
+from taptr.corpus.signals import remembered_stop
 from taptr.corpus.standing import standing
 from taptr.corpus.worker import TrackerWorker, WorkerOptions
 from taptr.messages import error_line, printable
@@ -41,7 +44,7 @@ from taptr.messages import error_line, printable
 if TYPE_CHECKING:
     import pyarrow as pa
 
-    from taptr.api.predictor import Predictor
+    from taptr.api.spec import ModelSpec
 
 STOP_GRACE_SECONDS = 20.0
 """After Ctrl-C or SIGTERM: how long actors may take to finish their calls and write."""
@@ -60,7 +63,8 @@ class CorpusOptions:
             GPUs, else one per ``cpus_per_actor`` CPUs, within memory).
         cpus_per_actor: CPUs each actor reserves (torch threads on CPU actors).
         gpus_per_actor: GPUs each actor reserves; None: 1 where the cluster has GPUs, else 0.
-        memory_per_actor: bytes each actor reserves (None: `DEFAULT_ACTOR_MEMORY`).
+        memory_per_actor: bytes each actor reserves; None: estimated from the model by
+            `taptr.corpus.track_corpus` (`run_corpus` alone reserves `DEFAULT_ACTOR_MEMORY`).
         max_attempts: deaths of its actor while tracking a video before it is failed.
         max_frames: track at most this many frames of each video.
         max_video_frames: refuse (record as failed) videos that declare more frames.
@@ -93,28 +97,33 @@ class CorpusOptions:
     start_timeout: float = 300.0
 
 
-def track_corpus(
+def run_corpus(
     videos: list[CorpusVideo],
-    make_predictor: Callable[[], Predictor],
+    model: ModelSpec,
     options: CorpusOptions,
     print_line: Callable[..., Any] = print,
     worker: type[TrackerWorker] = TrackerWorker,
 ) -> Summary:
     """Tracks every video of a corpus not already done; returns what happened.
 
+    `taptr.corpus.track_corpus` is the entry point: it gives each video its settings
+    digest and sizes the actors' memory, then calls this.
+
     Args:
         videos: the corpus, each with its settings digest (`taptr.corpus.settings`) and
             a unique id.
-        make_predictor: builds a predictor; called once in each actor (it is pickled).
+        model: the tracker each actor loads once (`ModelSpec.load`; it is pickled).
         options: see `CorpusOptions`.
         print_line: where progress lines go.
         worker: the actor class (benchmarks put a named stand-in here).
 
     Raises:
         ValueError: ids given twice, a folder holding foreign files, an impossible
-            request of the cluster, or a job that cannot go on (one line each).
+            request of the cluster, a store that does not answer, or a job that cannot
+            go on (one line each).
         ModuleNotFoundError: Ray is not installed (the message says how to install it).
-        KeyboardInterrupt: Ctrl-C or SIGTERM, after the summary is written.
+        KeyboardInterrupt: Ctrl-C or SIGTERM (what the process's handler raised), after
+            the summary is written.
     """
     ray = require_ray()
     check_unique(videos)
@@ -126,24 +135,36 @@ def track_corpus(
     todo = plan(videos, index, options, summary)
     # nothing to track: no cluster to join (a finished corpus reruns in seconds)
     cluster = joined(ray, options.address) if todo else contextlib.nullcontext()
-    with cluster:
+    with remembered_stop(), cluster:
         actors, shape = _size(ray, options) if todo else (0, None)
         layout.prepare()
-        compact(layout, summary.run, index)  # what a stopped run left superseded
         layout.write_summary(summary.as_dict())  # "running": an old summary is not this run's
         try:
+            compact(layout, summary.run, index, print_line)  # what a stopped run superseded
             if todo and shape is not None:
-                starter = _actor_starter(ray, worker, make_predictor, options, summary.run, shape)
+                starter = _actor_starter(ray, worker, model, options, summary.run, shape)
                 _run(todo, starter, options, (layout, summary, actors), print_line)
-                compact(layout, summary.run)  # what this run superseded
+                compact(layout, summary.run, print_line=print_line)  # what this run did
             layout.finish()
             summary.state = "finished"
+        except BaseException as error:  # whatever stopped it, the summary says so
+            if summary.state == "running":
+                _stopped(summary, error)
+            raise
         finally:
             summary.seconds = time.perf_counter() - started
             layout.write_summary(summary.as_dict())
             if summary.state != "finished":  # the caller gets an exception, not the summary
                 print_line(summary.line(), flush=True)
     return summary
+
+
+def _stopped(summary: Summary, error: BaseException) -> None:
+    """Records in the summary why a run stopped (an interrupt, or an error)."""
+    if isinstance(error, KeyboardInterrupt):
+        summary.state = "interrupted"
+    else:
+        summary.state, summary.error = "failed", error_line(error)
 
 
 def plan(
@@ -213,31 +234,6 @@ def check_unique(videos: list[CorpusVideo]) -> None:
             )
 
 
-def sound_index(layout: ResultLayout, print_line: Callable[..., Any] = print) -> pa.Table:
-    """The index of the parts that read back as it says; damaged parts are removed.
-
-    Their videos are then tracked again, as if never done.
-    """
-    import pyarrow as pa
-    import pyarrow.compute as pc
-
-    index = layout.read_index()
-    damaged = layout.damaged_parts(index)
-    if not damaged:
-        return index
-    for part in damaged:
-        layout.remove_part(part)
-    kept = index.filter(
-        pc.invert(pc.is_in(index["part"], value_set=pa.array(damaged, pa.string())))
-    )
-    print_line(
-        f"removed {len(damaged)} damaged part(s) that no longer hold the rows their index "
-        f"names; their {len(index) - len(kept)} videos are tracked again",
-        flush=True,
-    )
-    return kept
-
-
 def _size(ray: ModuleType, options: CorpusOptions) -> tuple[int, ActorShape]:
     """(actors, what each reserves), checked against the cluster."""
     gpus = options.gpus_per_actor
@@ -261,6 +257,7 @@ def _run(
 
     def on_commit(finished: Finished, attempts: int) -> None:
         summary.commit(finished, attempts, tasks[finished.index].video_id)
+        progress.update(finished)  # counted once written, as the summary counts it
 
     scheduler = Scheduler(
         tasks,
@@ -268,12 +265,11 @@ def _run(
         layout,
         PartWriter(layout, summary.run, options.parts),
         SchedulerOptions(actors, options.max_attempts, options.start_timeout),
-        progress.update,
         on_commit,
     )
     try:
         _drive(scheduler, progress)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt:  # Ray's own for a signal inside its wait: see `signals`
         summary.state = "interrupted"
         _stop(scheduler, progress)
         raise
@@ -308,7 +304,7 @@ def _stop(scheduler: Scheduler, progress: Progress) -> None:
 def _actor_starter(
     ray: ModuleType,
     worker: type[TrackerWorker],
-    make_predictor: Callable[[], Predictor],
+    model: ModelSpec,
     options: CorpusOptions,
     run: str,
     shape: ActorShape,
@@ -338,7 +334,7 @@ def _actor_starter(
     )
 
     def start() -> Any:
-        return actor.remote(make_predictor, settings, threads)
+        return actor.remote(model, settings, threads)
 
     return start
 

@@ -1,10 +1,12 @@
 """Progress lines for long corpus jobs and the summary at the end.
 
 One plain line every ``every`` seconds (logs of a job that runs for days stay readable):
-videos finished out of those to do, failures, frames per second, and the time left. The
-rate and the estimate count from the moment the first actor was ready, so that model
-loading does not make the first estimate long. The last line is printed from the
-summary's own numbers, so the two agree.
+videos done or failed out of those to do, failures, frames per second, and the time
+left. A video counts once its part is published (committed), as in the summary: one
+tracked but not yet written, or tracked by a worker that then died, does not count, so
+the count never passes the videos to do and never runs ahead of OUT. The rate and the
+estimate count from the moment the first actor was ready, so that model loading does not
+make the first estimate long. The last line is printed from the summary's own numbers.
 """
 
 from __future__ import annotations
@@ -135,7 +137,7 @@ class Progress:
             self.started = when
 
     def update(self, finished: Finished) -> None:
-        """Counts a video an actor is done with (written or not yet)."""
+        """Counts a video whose part is published (done or failed for good)."""
         self.finished += 1
         self.failed += finished.status != DONE
         self.frames += finished.frames
@@ -156,7 +158,8 @@ class Progress:
         """``corpus: 12/20 videos (1 failed), 41.2 frames/s, about 3m10s left``."""
         rate = self.frames / elapsed if elapsed > 0 else 0.0
         if self.finished:
-            left = f"about {duration((self.todo - self.finished) * elapsed / self.finished)} left"
+            left_over = max(0, self.todo - self.finished)
+            left = f"about {duration(left_over * elapsed / self.finished)} left"
         else:
             left = "estimating the time left"
         return (

@@ -103,9 +103,8 @@ class Scheduler:
         layout: the output folder (to reconcile a dead actor's parts).
         driver_parts: where the driver writes the failures it decides.
         options: see `SchedulerOptions`.
-        on_finished: called with each `Finished` as it arrives (progress).
-        on_commit: called with each `Finished` once it is written, and its tracking
-            attempts.
+        on_commit: called with each `Finished` once it is written (its part published),
+            and its tracking attempts: what the summary and the progress lines count.
     """
 
     def __init__(
@@ -115,7 +114,6 @@ class Scheduler:
         layout: ResultLayout,
         driver_parts: PartWriter,
         options: SchedulerOptions,
-        on_finished: Callable[[Finished], None],
         on_commit: Callable[[Finished, int], None],
     ) -> None:
         import ray
@@ -126,7 +124,6 @@ class Scheduler:
         self.layout = layout
         self.driver_parts = driver_parts
         self.options = options
-        self.on_finished = on_finished
         self.on_commit = on_commit
         self.queue: deque[int] = deque(range(len(tasks)))
         self.alone: deque[int] = deque()  # suspects of a death between videos
@@ -303,7 +300,6 @@ class Scheduler:
             slot.current = None
             slot.finished.add(event.index)
             slot.uncommitted[event.index] = event
-            self.on_finished(event)
         elif isinstance(event, Committed):
             slot.parts.add(event.part)
             for index in event.indices:
@@ -360,9 +356,7 @@ class Scheduler:
         tries = self.tries.get(index, 0)
         failure = Failure(task.video_id, task.path, reason, tries, None, None, task.digest)
         self.driver_parts.add_failure(index, failure)
-        finished = Finished(index, FAILED, reason)
-        self.on_finished(finished)
-        self.driver_pending[index] = finished
+        self.driver_pending[index] = Finished(index, FAILED, reason)
         if self.driver_parts.due():
             committed = self.driver_parts.flush()
             if committed is not None:

@@ -22,7 +22,7 @@ import os
 import queue
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -47,6 +47,7 @@ from taptr.messages import error_line
 
 if TYPE_CHECKING:
     from taptr.api.predictor import Predictor
+    from taptr.api.spec import ModelSpec
 
 KILL_VARIABLE = "TAPTR_CORPUS_KILL"
 """The fault-injection hook's environment variable (tests only)."""
@@ -83,14 +84,14 @@ class TrackerWorker:
     """A Ray actor holding one predictor and the part it is filling.
 
     Args:
-        make_predictor: builds the predictor (called once, in the actor).
+        model: the tracker, built once in the actor (`ModelSpec.load`).
         options: how to track and where to write.
         threads: torch threads for CPU actors (None leaves torch's default).
     """
 
     def __init__(
         self,
-        make_predictor: Callable[[], Predictor],
+        model: ModelSpec,
         options: WorkerOptions,
         threads: int | None = None,
     ) -> None:
@@ -100,10 +101,14 @@ class TrackerWorker:
             torch.set_num_threads(threads)
         # the driver has told the user which model runs: once per run, not per actor
         logging.getLogger("taptr").setLevel(logging.ERROR)
-        self.predictor = make_predictor()
+        self.predictor = self.load(model)
         self.options = options
         self.parts = PartWriter(ResultLayout(options.storage), options.run, options.parts)
         self.stopping = False  # set by `stop` from the actor's second thread
+
+    def load(self, model: ModelSpec) -> Predictor:
+        """The actor's predictor (benchmarks' stand-in loads none)."""
+        return model.load()
 
     def ready(self) -> str:
         """The actor's writer id (names its parts), once its model is loaded."""

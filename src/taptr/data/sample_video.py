@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -95,41 +96,100 @@ def make_sample_clip(
     Returns:
         The clip with its camera and disc motions.
     """
-    if num_frames < 2 or min(height, width) < 16:
-        raise ValueError(
-            f"need >= 2 frames of at least 16x16, got {num_frames} of {width}x{height}"
-        )
-    rng = np.random.default_rng(seed)
-    scene = _texture(rng, 2 * height, 2 * width)
-    radius = 0.16 * min(height, width)
-    side = math.ceil(2 * radius) + 1
-    disc_texture = _texture(rng, side, side)
-    disc_mask = np.zeros((side, side), np.uint8)  # OpenCV antialiases 8-bit images only
-    cv2.circle(disc_mask, _fixed((radius, radius)), round(radius * 16), 255, -1, cv2.LINE_AA, 4)
-    disc_alpha = disc_mask.astype(np.float32) / 255
-    progress = np.linspace(0.0, 1.0, num_frames)
-    camera = np.stack([_camera(p, height, width) for p in progress])
-    disc = np.stack([_disc_motion(p, radius, height, width) for p in progress])
-    frames = []
-    for camera_t, disc_t in zip(camera, disc, strict=True):
-        background = cv2.warpAffine(
-            scene,
-            camera_t[:2],
-            (width, height),
-            flags=cv2.INTER_CUBIC,
-            borderMode=cv2.BORDER_REFLECT,
-        )
-        front = cv2.warpAffine(disc_texture, disc_t[:2], (width, height), flags=cv2.INTER_CUBIC)
-        alpha = cv2.warpAffine(disc_alpha, disc_t[:2], (width, height), flags=cv2.INTER_LINEAR)
-        blend = background * (1 - alpha[..., None]) + front * alpha[..., None]
-        frames.append(np.clip(np.round(blend), 0, 255).astype(np.uint8))
-    return SampleClip(np.stack(frames), camera, disc, radius, fps)
+    scene = _Scene.make(num_frames, height, width, seed)
+    video = np.stack(list(scene.frames()))
+    return SampleClip(video, scene.camera, scene.disc, scene.radius, fps)
 
 
-def write_sample_video(path: str | os.PathLike[str]) -> Path:
-    """Writes the default sample clip (48 frames, 256 × 256, 24 fps) as an H.264 mp4."""
-    clip = make_sample_clip()
-    return write_video(path, clip.video, clip.fps)
+def write_sample_video(
+    path: str | os.PathLike[str],
+    *,
+    num_frames: int = 48,
+    height: int = 256,
+    width: int = 256,
+    seed: int = 0,
+) -> Path:
+    """Writes the sample clip (by default 48 frames, 256 × 256) as a 24 fps H.264 mp4.
+
+    Frames are rendered as they are encoded, so a long clip is never held in memory. The
+    frames are those of `make_sample_clip` with the same arguments.
+
+    Args:
+        path: the ``.mp4`` file to write.
+        num_frames: number of frames T, >= 2.
+        height: frame height H in pixels, >= 16 (an odd side is padded by one pixel).
+        width: frame width W in pixels, >= 16.
+        seed: seed of the scene's textures.
+    """
+    scene = _Scene.make(num_frames, height, width, seed)
+    return write_video(path, scene.frames(), SAMPLE_FPS)
+
+
+SAMPLE_FPS = 24.0
+"""Frames per second of the written sample clip."""
+
+
+@dataclass(frozen=True)
+class _Scene:
+    """The textures and motions of a clip, from which each frame is rendered on demand.
+
+    Attributes:
+        texture: (2H, 2W, 3) uint8 scene the camera looks at.
+        disc_texture: (S, S, 3) uint8 texture of the disc; disc_alpha: (S, S) float32
+            coverage of its antialiased edge.
+        camera, disc: (T, 3, 3) float64 motions (see `SampleClip`); radius: the disc's.
+    """
+
+    texture: np.ndarray
+    disc_texture: np.ndarray
+    disc_alpha: np.ndarray
+    camera: np.ndarray
+    disc: np.ndarray
+    radius: float
+
+    @classmethod
+    def make(cls, num_frames: int, height: int, width: int, seed: int) -> _Scene:
+        """The scene of a clip of this length and size (one seeded generator draws it).
+
+        Raises:
+            ValueError: fewer than 2 frames, or a side under 16 pixels.
+        """
+        if num_frames < 2 or min(height, width) < 16:
+            raise ValueError(
+                f"need >= 2 frames of at least 16x16, got {num_frames} of {width}x{height}"
+            )
+        rng = np.random.default_rng(seed)
+        texture = _texture(rng, 2 * height, 2 * width)
+        radius = 0.16 * min(height, width)
+        side = math.ceil(2 * radius) + 1
+        disc_texture = _texture(rng, side, side)
+        disc_mask = np.zeros((side, side), np.uint8)  # OpenCV antialiases 8-bit images only
+        cv2.circle(disc_mask, _fixed((radius, radius)), round(radius * 16), 255, -1, cv2.LINE_AA, 4)
+        progress = np.linspace(0.0, 1.0, num_frames)
+        camera = np.stack([_camera(p, height, width) for p in progress])
+        disc = np.stack([_disc_motion(p, radius, height, width) for p in progress])
+        alpha = disc_mask.astype(np.float32) / 255
+        return cls(texture, disc_texture, alpha, camera, disc, radius)
+
+    def frames(self) -> Iterator[np.ndarray]:
+        """The (H, W, 3) uint8 RGB frames in order, each rendered when asked for."""
+        height, width = self.texture.shape[0] // 2, self.texture.shape[1] // 2
+        for camera_t, disc_t in zip(self.camera, self.disc, strict=True):
+            background = cv2.warpAffine(
+                self.texture,
+                camera_t[:2],
+                (width, height),
+                flags=cv2.INTER_CUBIC,
+                borderMode=cv2.BORDER_REFLECT,
+            )
+            front = cv2.warpAffine(
+                self.disc_texture, disc_t[:2], (width, height), flags=cv2.INTER_CUBIC
+            )
+            alpha = cv2.warpAffine(
+                self.disc_alpha, disc_t[:2], (width, height), flags=cv2.INTER_LINEAR
+            )
+            blend = background * (1 - alpha[..., None]) + front * alpha[..., None]
+            yield np.clip(np.round(blend), 0, 255).astype(np.uint8)
 
 
 def _camera(progress: float, height: int, width: int) -> np.ndarray:

@@ -154,10 +154,12 @@ def _published_path(name: str, cache_dir: str | os.PathLike[str] | None) -> Path
 def fallback_notice(reason: str) -> str:
     """The one line said when the default model falls back to the bundled one.
 
-    It asks for ``pip install 'taptr[hub]'`` only when ``huggingface_hub`` is missing.
+    It asks for ``pip install huggingface_hub`` (what the ``hub`` extra adds: it installs from a
+    checkout and from the package index alike) only when ``huggingface_hub`` is missing.
     """
     entry = WEIGHTS[DEFAULT_MODEL]
-    install = "" if importlib.util.find_spec("huggingface_hub") else "pip install 'taptr[hub]' && "
+    missing = importlib.util.find_spec("huggingface_hub") is None
+    install = "pip install huggingface_hub && " if missing else ""
     return (
         f"the paper's weights ({DEFAULT_MODEL}) are not available ({reason}); using the "
         f"bundled {FALLBACK_MODEL}, trained on synthetic videos: its tracks on real "

@@ -1,0 +1,210 @@
+"""What a `ModelSpec`'s tracker is, read from its checkpoint without building it.
+
+The driver of a corpus needs two things of the model before any actor starts: the
+settings digest of every video (`taptr.corpus.settings`) and the memory each actor
+reserves (`taptr.corpus.cluster.actor_memory`). Both follow from the checkpoint's config,
+its file, its calibrated threshold and the spec, so the driver reads the file (checked as
+the loader checks it, `taptr.checkpoint.checkpoint_contents`) and builds nothing: no
+weights are copied into a model, no predictor times its kernels, nothing moves to a GPU.
+The weights' size is counted on PyTorch's meta device (no memory).
+
+A name resolves as `taptr.hub.load_model` resolves it, in the same order, with the same
+warnings (an untrained preset, the bundled model standing in for the default): a file,
+published weights, Drive weights, bundled weights, a preset; None is the default model.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from taptr.api.spec import ModelSpec
+from taptr.config import SUPPORT_KINDS, check_history_frames
+from taptr.types import AUTOCAST_TYPES
+
+if TYPE_CHECKING:
+    from taptr.config import ModelConfig
+
+logger = logging.getLogger("taptr.hub")  # the warnings `taptr.hub` gives when it loads
+
+
+@dataclass(frozen=True)
+class ModelFacts:
+    """A tracker's settings as its predictor would hold them, and its weights' size.
+
+    Attributes mirror `taptr.api.predictor.Predictor` (what `taptr.settings_record`
+    reads), so that a digest made from them equals one made from the predictor.
+
+    Attributes:
+        source: the name or file it was asked as (``Predictor.source``).
+        checkpoint_path: the file its weights come from (None: an untrained preset).
+        config: its model config.
+        visibility_threshold: the file's calibrated threshold, else the config's.
+        input_size: (H, W) the model sees.
+        context_points: TAPTRv2's context points K.
+        support_points: the support asked for (None: the model's own).
+        history_frames: TAPTRv3's history limit asked for (None: the model's).
+        weight_bytes: bytes of its parameters as loaded (float32).
+    """
+
+    source: str
+    checkpoint_path: Path | None
+    config: ModelConfig
+    visibility_threshold: float
+    input_size: tuple[int, int]
+    context_points: int
+    support_points: str | None
+    history_frames: int | None
+    weight_bytes: int
+
+
+@dataclass(frozen=True)
+class _Found:
+    """A resolved name: what it is called, its file, config and stored threshold."""
+
+    name: str
+    path: Path | None
+    config: ModelConfig
+    threshold: float | None
+
+
+def check_spec(spec: ModelSpec) -> None:
+    """Refuses a spec whose values no predictor takes, before any file is read.
+
+    Raises:
+        ValueError: names the field and the values it takes.
+    """
+    if spec.dtype not in AUTOCAST_TYPES:
+        raise ValueError(f"dtype must be one of {', '.join(AUTOCAST_TYPES)}, got {spec.dtype!r}")
+    if spec.support is not None and spec.support not in SUPPORT_KINDS:
+        kinds = ", ".join(SUPPORT_KINDS)
+        raise ValueError(f"support must be one of {kinds} or None, got {spec.support!r}")
+    points = spec.context_points
+    if points is not None and (type(points) is not int or points < 0):
+        raise ValueError(f"context_points must be a whole number >= 0, got {points!r}")
+    if spec.history_frames is not None:
+        check_history_frames(spec.history_frames, "history_frames")
+    size = spec.input_size
+    if size is not None and (
+        len(size) != 2 or not all(type(side) is int and side > 0 for side in size)
+    ):
+        raise ValueError(f"input_size must be (height, width) in pixels, got {size!r}")
+
+
+def model_facts(spec: ModelSpec) -> ModelFacts:
+    """The facts of the tracker ``spec`` describes (see the module docstring).
+
+    Raises:
+        ValueError: bad values in the spec (`check_spec`).
+        FileNotFoundError: neither a file nor a known name, or weights that cannot be had.
+        CheckpointError: the file is not a checkpoint taptr loads.
+    """
+    check_spec(spec)
+    found = _resolve(spec.checkpoint)
+    config = found.config
+    if spec.history_frames is not None and config.version != 3:
+        raise ValueError("history_frames applies to TAPTRv3 models only")  # as the runner says
+    points = config.context_points if spec.context_points is None else spec.context_points
+    threshold = config.visibility_threshold if found.threshold is None else found.threshold
+    return ModelFacts(
+        source=found.name,
+        checkpoint_path=found.path,
+        config=config,
+        visibility_threshold=threshold,
+        input_size=tuple(spec.input_size or config.input_size),  # type: ignore[arg-type]
+        context_points=points,
+        support_points=spec.support,
+        history_frames=spec.history_frames,
+        weight_bytes=parameter_bytes(config),
+    )
+
+
+def parameter_bytes(config: ModelConfig) -> int:
+    """Bytes of the parameters of the model ``config`` describes, counted on the meta device."""
+    import torch
+
+    from taptr.model.build import build_model
+
+    with torch.device("meta"):
+        model = build_model(config)
+    return sum(p.numel() * p.element_size() for p in model.parameters())
+
+
+def _resolve(name: str | None) -> _Found:
+    """The name's file and config, in `taptr.hub.load_model`'s order."""
+    from taptr import hub
+    from taptr.config import PRESETS, get_config
+
+    if name is None:
+        return _default()
+    if Path(name).is_file():
+        return _from_file(Path(name), name)
+    if name in hub.WEIGHTS:
+        return _from_file(hub._published_path(name, None), name, hub.WEIGHTS[name].preset)
+    if name in hub.MANUAL:
+        return _from_file(hub.manual_path(name), name, hub.MANUAL[name].preset)
+    if name in hub.BUNDLED:
+        return _bundled(name)
+    if name in PRESETS:
+        logger.warning("preset %r has UNTRAINED weights: its tracks are meaningless", name)
+        return _Found(name, None, get_config(name), None)
+    raise FileNotFoundError(
+        f"no checkpoint file or model named {name!r}; known names: {', '.join(hub.known_names())}"
+    )
+
+
+def _default() -> _Found:
+    """The paper's weights when they can be had, else the bundled model and one warning."""
+    from taptr import hub
+    from taptr.checkpoint import CheckpointError
+
+    try:
+        path = hub._published_path(hub.DEFAULT_MODEL, None)
+        return _from_file(path, hub.DEFAULT_MODEL, hub.WEIGHTS[hub.DEFAULT_MODEL].preset)
+    except (FileNotFoundError, ModuleNotFoundError, CheckpointError) as error:
+        reason = hub._reason(error)
+    logger.warning(hub.fallback_notice(reason))
+    return _bundled(hub.FALLBACK_MODEL)
+
+
+def _bundled(name: str) -> _Found:
+    from taptr import hub
+    from taptr.config import PRESETS, get_config
+
+    path = hub.bundled_path(name)
+    if path is not None:
+        return _from_file(path, name)
+    preset = hub.BUNDLED[name][1] if hub.BUNDLED[name][1] in PRESETS else "tiny"
+    logger.warning(
+        "bundled weights %r are not installed: using the %r preset with UNTRAINED weights, "
+        "whose tracks are meaningless",
+        name,
+        preset,
+    )
+    return _Found(name, None, get_config(preset), None)
+
+
+def _from_file(path: Path, name: str, preset: str | None = None) -> _Found:
+    """A checkpoint file's config and stored threshold, checked as loading checks them."""
+    from taptr.checkpoint import (
+        CheckpointError,
+        check_architecture,
+        checkpoint_contents,
+        read_file,
+        read_visibility_threshold,
+    )
+    from taptr.checkpoint_guards import named_failures
+
+    with named_failures(path):
+        data = read_file(path)
+        if not isinstance(data, Mapping):
+            raise CheckpointError(f"{path} holds a {type(data).__name__}, not a checkpoint dict")
+        config, _ = checkpoint_contents(data, str(path))
+        if preset is not None:
+            check_architecture(config, path, name, preset)
+    calibrated = data.get("visibility_threshold") is not None
+    threshold = read_visibility_threshold(path) if calibrated else None
+    return _Found(name, path, config, threshold)
