@@ -51,8 +51,8 @@ def calibrated(tmp_path_factory):
     import torch
 
     from taptr import build_model
-    from taptr.checkpoint import save_checkpoint
     from taptr.config import get_config
+    from taptr.weights.checkpoint import save_checkpoint
 
     torch.manual_seed(1)
     model = build_model(get_config("tiny").replace(context_points=4))

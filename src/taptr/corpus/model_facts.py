@@ -4,18 +4,17 @@ The driver of a corpus needs two things of the model before any actor starts: th
 settings digest of every video (`taptr.corpus.settings`) and the memory each actor
 reserves (`taptr.corpus.cluster.actor_memory`). Both follow from the checkpoint's config,
 its file, its calibrated threshold and the spec, so the driver reads the file (checked as
-the loader checks it, `taptr.checkpoint.checkpoint_contents`) and builds nothing: no
+the loader checks it, `taptr.weights.checkpoint.checkpoint_contents`) and builds nothing: no
 weights are copied into a model, no predictor times its kernels, nothing moves to a GPU.
 The weights' size is counted on PyTorch's meta device (no memory).
 
-A name resolves as `taptr.hub.load_model` resolves it, in the same order, with the same
-warnings (an untrained preset, the bundled model standing in for the default): a file,
-published weights, Drive weights, bundled weights, a preset; None is the default model.
+A name resolves through `taptr.weights.registry.resolve_weights`, as loading resolves it, in
+the same order and with the same warnings (an untrained preset, the bundled model standing in
+for the default).
 """
 
 from __future__ import annotations
 
-import logging
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,8 +26,6 @@ from taptr.types import AUTOCAST_TYPES
 
 if TYPE_CHECKING:
     from taptr.config import ModelConfig
-
-logger = logging.getLogger("taptr.hub")  # the warnings `taptr.hub` gives when it loads
 
 
 @dataclass(frozen=True)
@@ -134,69 +131,26 @@ def parameter_bytes(config: ModelConfig) -> int:
 
 
 def _resolve(name: str | None) -> _Found:
-    """The name's file and config, in `taptr.hub.load_model`'s order."""
-    from taptr import hub
-    from taptr.config import PRESETS, get_config
+    """The name's file and config, found as `taptr.weights.registry.load_model` finds them."""
+    from taptr.config import get_config
+    from taptr.weights.registry import resolve_weights
 
-    if name is None:
-        return _default()
-    if Path(name).is_file():
-        return _from_file(Path(name), name)
-    if name in hub.WEIGHTS:
-        return _from_file(hub._published_path(name, None), name, hub.WEIGHTS[name].preset)
-    if name in hub.MANUAL:
-        return _from_file(hub.manual_path(name), name, hub.MANUAL[name].preset)
-    if name in hub.BUNDLED:
-        return _bundled(name)
-    if name in PRESETS:
-        logger.warning("preset %r has UNTRAINED weights: its tracks are meaningless", name)
-        return _Found(name, None, get_config(name), None)
-    raise FileNotFoundError(
-        f"no checkpoint file or model named {name!r}; known names: {', '.join(hub.known_names())}"
-    )
+    def untrained(asked: str, preset: str) -> _Found:
+        return _Found(asked, None, get_config(preset), None)
 
-
-def _default() -> _Found:
-    """The paper's weights when they can be had, else the bundled model and one warning."""
-    from taptr import hub
-    from taptr.checkpoint import CheckpointError
-
-    try:
-        path = hub._published_path(hub.DEFAULT_MODEL, None)
-        return _from_file(path, hub.DEFAULT_MODEL, hub.WEIGHTS[hub.DEFAULT_MODEL].preset)
-    except (FileNotFoundError, ModuleNotFoundError, CheckpointError) as error:
-        reason = hub._reason(error)
-    logger.warning(hub.fallback_notice(reason))
-    return _bundled(hub.FALLBACK_MODEL)
-
-
-def _bundled(name: str) -> _Found:
-    from taptr import hub
-    from taptr.config import PRESETS, get_config
-
-    path = hub.bundled_path(name)
-    if path is not None:
-        return _from_file(path, name)
-    preset = hub.BUNDLED[name][1] if hub.BUNDLED[name][1] in PRESETS else "tiny"
-    logger.warning(
-        "bundled weights %r are not installed: using the %r preset with UNTRAINED weights, "
-        "whose tracks are meaningless",
-        name,
-        preset,
-    )
-    return _Found(name, None, get_config(preset), None)
+    return resolve_weights(name, _from_file, untrained)[0]
 
 
 def _from_file(path: Path, name: str, preset: str | None = None) -> _Found:
     """A checkpoint file's config and stored threshold, checked as loading checks them."""
-    from taptr.checkpoint import (
+    from taptr.weights.checkpoint import (
         CheckpointError,
         check_architecture,
         checkpoint_contents,
         read_file,
         read_visibility_threshold,
     )
-    from taptr.checkpoint_guards import named_failures
+    from taptr.weights.safe_checks import named_failures
 
     with named_failures(path):
         data = read_file(path)

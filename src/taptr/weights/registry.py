@@ -36,9 +36,10 @@ import importlib.util
 import logging
 import os
 import re
+from collections.abc import Callable
 from importlib import resources
 from pathlib import Path
-from typing import NamedTuple
+from typing import NamedTuple, TypeVar
 
 import torch
 
@@ -57,6 +58,8 @@ from taptr.weights.hub import (  # noqa: F401 (re-exported: taptr.weights.regist
 )
 
 logger = logging.getLogger(__name__)
+
+T = TypeVar("T")
 
 
 BUNDLED = {"taptr-small-synthetic": ("taptr-small-synthetic.pth", "small")}
@@ -87,7 +90,7 @@ class ModelChoice(NamedTuple):
     visibility_threshold: float | None = None
 
 
-def _from_file(path: str | os.PathLike[str], name: str, preset: str | None = None) -> ModelChoice:
+def _from_file(path: Path, name: str, preset: str | None = None) -> ModelChoice:
     """The model in ``path``; with ``preset`` (named weights), of that architecture only."""
     expected = (name, preset) if preset is not None else None
     model, threshold = load_checkpoint_and_threshold(path, expected=expected)
@@ -168,6 +171,59 @@ def fallback_notice(reason: str) -> str:
     )
 
 
+Read = Callable[[Path, str, "str | None"], T]
+"""Reads a found file: (file, name it was asked as, preset its name promises or None) → T."""
+Untrained = Callable[[str, str], T]
+"""Stands in untrained weights: (name asked, preset to build) → T."""
+
+
+def resolve_weights(
+    name_or_path: str | os.PathLike[str] | None,
+    read: Read[T],
+    untrained: Untrained[T],
+    *,
+    cache_dir: str | os.PathLike[str] | None = None,
+) -> tuple[T, str | None]:
+    """Finds a name's weights in `load_model`'s order and hands the file to ``read``.
+
+    The one place the order lives: loading a model (`load_model`) and reading what a model
+    is without building it (`taptr.corpus.model_facts`) both go through it.
+
+    Returns:
+        What ``read`` (or ``untrained``) made, and the fallback notice when the default
+        model could not be had (it is also logged once).
+
+    Raises:
+        FileNotFoundError: neither an existing file nor a known name (lists the names),
+            named published weights that are neither cached nor downloadable, or
+            hand-downloaded weights not in `weights_dir` (says where to get them).
+        NotImplementedError: published weights of an architecture taptr does not have.
+    """
+    if name_or_path is None:
+        try:
+            path = _published_path(DEFAULT_MODEL, cache_dir)
+            return read(path, DEFAULT_MODEL, WEIGHTS[DEFAULT_MODEL].preset), None
+        except (FileNotFoundError, ModuleNotFoundError, CheckpointError) as error:
+            notice = fallback_notice(_reason(error))
+        logger.warning(notice)
+        return _bundled(FALLBACK_MODEL, read, untrained), notice
+    name = str(name_or_path)
+    if Path(name).is_file():
+        return read(Path(name), name, None), None
+    if name in WEIGHTS:
+        return _kept(read, _published_path(name, cache_dir), name, WEIGHTS[name].preset), None
+    if name in MANUAL:
+        return _kept(read, manual_path(name), name, MANUAL[name].preset), None
+    if name in BUNDLED:
+        return _bundled(name, read, untrained), None
+    if name in PRESETS:
+        logger.warning("preset %r has UNTRAINED weights: its tracks are meaningless", name)
+        return untrained(name, name), None
+    raise FileNotFoundError(
+        f"no checkpoint file or model named {name!r}; known names: {', '.join(known_names())}"
+    )
+
+
 def load_model(
     name_or_path: str | os.PathLike[str] | None = None,
     *,
@@ -183,34 +239,20 @@ def load_model(
         cache_dir: Hugging Face cache folder for published weights (default: the Hub's).
 
     Raises:
-        FileNotFoundError: neither an existing file nor a known name (lists the names),
-            named published weights that are neither cached nor downloadable, or
-            hand-downloaded weights not in `weights_dir` (says where to get them).
-        NotImplementedError: published weights of an architecture taptr does not have.
+        FileNotFoundError, NotImplementedError: as `resolve_weights`.
     """
-    if name_or_path is None:
-        return _default_model(cache_dir)
-    name = str(name_or_path)
-    if Path(name).is_file():
-        return _from_file(name, name)
-    if name in WEIGHTS:
-        return _from_kept(_published_path(name, cache_dir), name, WEIGHTS[name].preset)
-    if name in MANUAL:
-        return _from_kept(manual_path(name), name, MANUAL[name].preset)
-    if name in BUNDLED:
-        return _bundled(name)
-    if name in PRESETS:
-        logger.warning("preset %r has UNTRAINED weights: its tracks are meaningless", name)
-        return ModelChoice(build_model(name).eval(), name, None)
-    raise FileNotFoundError(
-        f"no checkpoint file or model named {name!r}; known names: {', '.join(known_names())}"
-    )
+    choice, notice = resolve_weights(name_or_path, _from_file, _untrained, cache_dir=cache_dir)
+    return choice._replace(notice=notice)
 
 
-def _from_kept(path: Path, name: str, preset: str) -> ModelChoice:
-    """`_from_file` of the file taptr keeps for ``name``; a refusal says what to delete."""
+def _untrained(name: str, preset: str) -> ModelChoice:
+    return ModelChoice(build_model(preset).eval(), name, None)
+
+
+def _kept(read: Read[T], path: Path, name: str, preset: str) -> T:
+    """``read`` of the file taptr keeps for ``name``; a refusal says what to delete."""
     try:
-        return _from_file(path, name, preset)
+        return read(path, name, preset)
     except CheckpointError as error:
         if "delete it" in str(error):
             raise
@@ -226,18 +268,6 @@ def resolve_model(
 ) -> TAPTR:
     """The model of `load_model` alone."""
     return load_model(name_or_path, cache_dir=cache_dir).model
-
-
-def _default_model(cache_dir: str | os.PathLike[str] | None) -> ModelChoice:
-    """The paper's weights when they can be had, else the bundled model and one warning."""
-    try:
-        path = _published_path(DEFAULT_MODEL, cache_dir)
-        return _from_file(path, DEFAULT_MODEL, WEIGHTS[DEFAULT_MODEL].preset)
-    except (FileNotFoundError, ModuleNotFoundError, CheckpointError) as error:
-        reason = _reason(error)
-    notice = fallback_notice(reason)
-    logger.warning(notice)
-    return _bundled(FALLBACK_MODEL)._replace(notice=notice)
 
 
 def _reason(error: BaseException) -> str:
@@ -257,10 +287,10 @@ def _reason(error: BaseException) -> str:
     return f"not in the Hugging Face cache and {found.group(1)}" if found else _first_line(error)
 
 
-def _bundled(name: str) -> ModelChoice:
+def _bundled(name: str, read: Read[T], untrained: Untrained[T]) -> T:
     path = bundled_path(name)
     if path is not None:
-        return _from_file(path, name)
+        return read(path, name, None)
     preset = BUNDLED[name][1] if BUNDLED[name][1] in PRESETS else "tiny"
     logger.warning(
         "bundled weights %r are not installed: using the %r preset with UNTRAINED weights, "
@@ -268,7 +298,7 @@ def _bundled(name: str) -> ModelChoice:
         name,
         preset,
     )
-    return ModelChoice(build_model(preset).eval(), name, None)
+    return untrained(name, preset)
 
 
 def from_pretrained(
