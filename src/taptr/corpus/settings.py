@@ -31,7 +31,7 @@ if TYPE_CHECKING:
 RECORDED = ("checkpoint", "dtype", "input_size", "context_points", "support", "history_frames")
 """`ModelSpec` fields `taptr.settings_record` records (as the predictor resolves them)."""
 
-SPEED_ONLY = ("device", "kernel", "frames_per_call", "capture", "compile")
+SPEED_ONLY = ("device", "kernel", "frames_per_call", "capture", "compile", "threads")
 """`ModelSpec` fields that change how fast a tracker runs, not its tracks (beyond rounding)."""
 
 

@@ -23,7 +23,7 @@ import queue
 import threading
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -86,7 +86,8 @@ class TrackerWorker:
     Args:
         model: the tracker, built once in the actor (`ModelSpec.load`).
         options: how to track and where to write.
-        threads: torch threads for CPU actors (None leaves torch's default).
+        threads: CPU threads of a CPU actor, its reserved CPUs, unless the spec names its own
+            (None: as the spec says, `taptr.runtime.threads.choose_threads`).
     """
 
     def __init__(
@@ -95,10 +96,8 @@ class TrackerWorker:
         options: WorkerOptions,
         threads: int | None = None,
     ) -> None:
-        if threads is not None:
-            import torch
-
-            torch.set_num_threads(threads)
+        if threads is not None and model.threads is None:
+            model = replace(model, threads=threads)
         # the driver has told the user which model runs: once per run, not per actor
         logging.getLogger("taptr").setLevel(logging.ERROR)
         self.predictor = self.load(model)
