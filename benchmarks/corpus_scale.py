@@ -1,6 +1,6 @@
 """The corpus pipeline's own cost per video at 10⁴ to 10⁶ videos, with a stand-in tracker.
 
-What is measured is taptr's pipeline, not the model: reading a Parquet manifest, the
+What is measured is taptr's pipeline, not the model: reading a Parquet video list, the
 settings digests, the plan (the skip set read from the parts' index), handing videos to
 actors, writing parts, a rerun over everything done, and opening the dataset in pandas.
 To reach 10⁶ videos in minutes on 2 cores the model is replaced by a stand-in, named as
@@ -114,18 +114,18 @@ def _scenario(scenario: str, count: int, folder: Path, actors: int) -> dict:
     from taptr.corpus.damage import sound_index
     from taptr.corpus.inputs import QuerySpec
     from taptr.corpus.layout import ResultLayout
-    from taptr.corpus.manifest import read_manifest
     from taptr.corpus.pipeline import CorpusOptions, plan, run_corpus
     from taptr.corpus.progress import Summary
+    from taptr.corpus.video_list import read_video_list
 
     paths = _clips(folder) if scenario == "done" else [str(folder / "missing.mp4")]
     table = pa.table({"path": [paths[i % len(paths)] for i in range(count)],
                       "id": [f"v{i:07d}" for i in range(count)]})  # fmt: skip
-    pq.write_table(table, folder / "manifest.parquet")
+    pq.write_table(table, folder / "video list.parquet")
     del table
     timings: dict[str, float] = {}
     started = time.perf_counter()
-    videos = read_manifest(folder / "manifest.parquet", QuerySpec(grid=1))
+    videos = read_video_list(folder / "video list.parquet", QuerySpec(grid=1))
     timings["read_manifest_s"] = time.perf_counter() - started
     videos = [
         video.__class__(video.video_id, video.path, video.queries, "0" * 16) for video in videos

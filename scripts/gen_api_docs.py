@@ -82,7 +82,7 @@ SECTIONS = {
         "taptr.corpus.results",
         "taptr.corpus.pipeline",
         "taptr.corpus.inputs",
-        "taptr.corpus.manifest",
+        "taptr.corpus.video_list",
         "taptr.corpus.settings",
         "taptr.corpus.layout",
         "taptr.corpus.schema",

@@ -45,7 +45,7 @@ OWN_POINTS = [[0, 10.0, 12.0], [2, 30.5, 20.0], [1, 5.0, 5.0]]
 
 @pytest.fixture(scope="module")
 def corpus(tmp_path_factory):
-    """A manifest of 23 videos: 20 good, a corrupt, an oversized and a truncated one."""
+    """A video list of 23 videos: 20 good, a corrupt, an oversized and a truncated one."""
     folder = tmp_path_factory.mktemp("corpus")
     rows = ["path,id,points"]
     for index, count in enumerate(LENGTHS):
@@ -113,7 +113,7 @@ def test_a_corpus_survives_killed_actors_records_every_failure_and_resumes(
     assert re.search(r"23 videos: 20 done \(\d+ after their worker died\), 0 skipped", printed)
     assert "3 failed in" in printed
     assert re.search(r"corpus: 23/23 videos \(3 failed\), [\d.]+ frames/s, done", printed)
-    # the lines count written videos: never past the manifest's 23, never back
+    # the lines count written videos: never past the video list's 23, never back
     counts = [int(found) for found in re.findall(r"^corpus: (\d+)/23 videos", printed, re.M)]
     assert (
         counts == sorted(counts) and max(counts) == 23 and "left" not in printed.split("done")[-1]

@@ -1,8 +1,8 @@
-"""The corpus's results layout, manifests, cluster checks and progress, without a Ray job.
+"""The corpus's results layout, video lists, cluster checks and progress, without a Ray job.
 
 Parts holding many videos, published whole and read back; the index as the commit and
 the skip set; superseded rows compacted; foreign files and links refused; the first
-layout migrated; manifests bounded before parsing; impossible requests of the cluster
+layout migrated; video lists bounded before parsing; impossible requests of the cluster
 refused in seconds.
 """
 
@@ -20,9 +20,9 @@ import pytest
 
 from taptr.cli.main import main
 from taptr.corpus.inputs import CorpusVideo, QuerySpec
-from taptr.corpus.manifest import MAX_HEADER_BYTES, read_manifest
 from taptr.corpus.progress import Progress, Summary
 from taptr.corpus.records import DONE, FAILED, Failure, Finished, VideoTracks
+from taptr.corpus.video_list import MAX_HEADER_BYTES, read_video_list
 
 pa = pytest.importorskip("pyarrow")
 pq = pytest.importorskip("pyarrow.parquet")
@@ -288,7 +288,7 @@ def test_the_first_layout_migrates_with_its_digests(tmp_path):
     assert not (out / "_attempts").exists()
 
 
-def test_manifests_in_csv_and_parquet(tmp_path):
+def test_video_lists_in_csv_and_parquet(tmp_path):
     default = QuerySpec(grid=3)
     table = pa.table(
         {
@@ -300,15 +300,17 @@ def test_manifests_in_csv_and_parquet(tmp_path):
         }
     )
     pq.write_table(table, tmp_path / "m.parquet")
-    first, second, third = read_manifest(tmp_path / "m.parquet", default)
+    first, second, third = read_video_list(tmp_path / "m.parquet", default)
     assert (first.video_id, first.path) == ("first", str(tmp_path / "a.mp4"))
     assert first.queries.points == ((0.0, 1.0, 2.0),)
     assert (second.video_id, second.path, second.queries) == ("/abs/b.mp4", "/abs/b.mp4", default)
     assert third.queries == QuerySpec(grid=2)
     (tmp_path / "m.csv").write_text("path,grid,query_frame\nc.mp4,4.0,2\nd.mp4,,\n")
     with pytest.raises(ValueError, match="row 3: no points, grid or mask"):
-        read_manifest(tmp_path / "m.csv", None)
-    assert read_manifest(tmp_path / "m.csv", default)[0].queries == QuerySpec(grid=4, query_frame=2)
+        read_video_list(tmp_path / "m.csv", None)
+    assert read_video_list(tmp_path / "m.csv", default)[0].queries == QuerySpec(
+        grid=4, query_frame=2
+    )
 
 
 @pytest.mark.parametrize(
@@ -328,17 +330,17 @@ def test_manifests_in_csv_and_parquet(tmp_path):
         ("p" * (MAX_HEADER_BYTES + 10) + "\n", "header line is longer than"),
     ],
 )
-def test_manifests_are_bounded_and_refused_in_one_line(tmp_path, text, message):
+def test_video_lists_are_bounded_and_refused_in_one_line(tmp_path, text, message):
     (tmp_path / "m.csv").write_text(text)
     with pytest.raises(ValueError, match=message) as error:
-        read_manifest(tmp_path / "m.csv", QuerySpec(grid=2))
+        read_video_list(tmp_path / "m.csv", QuerySpec(grid=2))
     assert "\n" not in str(error.value) and len(str(error.value)) < 400
 
 
 def test_a_12000_point_csv_row_is_read(tmp_path):
     points = [[0, 100.123456, 200.654321]] * 12_000
     (tmp_path / "m.csv").write_text(f'path,points\nc.mp4,"{json.dumps(points)}"\n')
-    (video,) = read_manifest(tmp_path / "m.csv", None)
+    (video,) = read_video_list(tmp_path / "m.csv", None)
     assert len(video.queries.points) == 12_000
 
 

@@ -42,7 +42,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "inputs",
         nargs="+",
-        help="video files, folders of videos, quoted glob patterns, or manifests (.csv or "
+        help="video files, folders of videos, quoted glob patterns, or video lists (.csv or "
         ".parquet with a 'path' column and optional 'id', 'points', 'grid', 'mask', "
         "'query_frame' columns)",
     )
@@ -178,7 +178,7 @@ def run(args: argparse.Namespace) -> int:
     from taptr.corpus.migrate import migrate
 
     _check_arguments(args)
-    require_ray()  # before the manifests are read: say at once how to install it
+    require_ray()  # before the video lists are read: say at once how to install it
     check_address(args.address)  # and that the cluster cannot be reached
     videos = corpus_videos(args)
     layout = ResultLayout.at(args.out)
@@ -248,25 +248,25 @@ def _check_arguments(args: argparse.Namespace) -> None:
 
 
 def corpus_videos(args: argparse.Namespace) -> list[CorpusVideo]:
-    """The videos the inputs name, manifests read, with the options' queries as defaults.
+    """The videos the inputs name, video lists read, with the options' queries as defaults.
 
     Raises:
         ValueError: no videos at all, or an input without queries.
     """
     from taptr.cli.common.videos import expand_videos
     from taptr.corpus.inputs import CorpusVideo
-    from taptr.corpus.manifest import is_manifest, read_manifest
+    from taptr.corpus.video_list import is_video_list, read_video_list
 
     default = default_queries(args)
     videos: list[CorpusVideo] = []
     for item in args.inputs:
-        if is_manifest(item):
-            videos += read_manifest(item, default)
+        if is_video_list(item):
+            videos += read_video_list(item, default)
             continue
         if default is None:
             raise ValueError(
                 f"{item}: give the queries with --points, --points-file, --grid or --mask "
-                "(or list the videos in a manifest with their own)"
+                "(or list the videos in a video list with their own)"
             )
         videos += [CorpusVideo(str(path), str(path), default) for path in expand_videos([item])]
     return videos

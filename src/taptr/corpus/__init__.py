@@ -1,7 +1,7 @@
 """Tracking a corpus of videos on a Ray cluster (or a local Ray instance): ``taptr track-corpus``.
 
 From Python, `track_corpus` (`taptr.corpus.job`) takes the videos (`CorpusVideo`, or
-`read_manifest`), the tracker as a `taptr.api.spec.ModelSpec` and `CorpusOptions`, and
+`read_video_list`), the tracker as a `taptr.api.spec.ModelSpec` and `CorpusOptions`, and
 returns the run's `Summary`; `read_tracks` and `read_failures` read the results back
 with their columns, failures or not.
 
@@ -29,7 +29,7 @@ _EXPORTS = {
     "CorpusOptions": "taptr.corpus.pipeline",
     "Summary": "taptr.corpus.progress",
     "PartLimits": "taptr.corpus.parts",
-    "read_manifest": "taptr.corpus.manifest",
+    "read_video_list": "taptr.corpus.video_list",
     "read_tracks": "taptr.corpus.results",
     "read_failures": "taptr.corpus.results",
 }

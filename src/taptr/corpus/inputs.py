@@ -1,8 +1,8 @@
 """The videos of a corpus and the queries each one asks for.
 
 A corpus is a list of `CorpusVideo`: an id (unique in the corpus; the result rows carry it),
-the file or image folder, and a `QuerySpec` (listed points, a grid, or a mask). Manifests
-(CSV or Parquet) are read by `taptr.corpus.manifest`; folders and globs become videos whose
+the file or image folder, and a `QuerySpec` (listed points, a grid, or a mask). Video lists
+(CSV or Parquet) are read by `taptr.corpus.video_list`; folders and globs become videos whose
 id is their path as found.
 """
 

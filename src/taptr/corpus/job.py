@@ -1,9 +1,9 @@
 """`track_corpus`: a corpus tracked from Python, as ``taptr track-corpus`` tracks it.
 
     from taptr.api.spec import ModelSpec
-    from taptr.corpus import CorpusOptions, QuerySpec, read_manifest, track_corpus
+    from taptr.corpus import CorpusOptions, QuerySpec, read_video_list, track_corpus
 
-    videos = read_manifest("manifest.csv", default=QuerySpec(grid=8))
+    videos = read_video_list("video list.csv", default=QuerySpec(grid=8))
     summary = track_corpus(videos, ModelSpec("taptr-small-synthetic"), CorpusOptions(out="res"))
 
 The model is a `taptr.api.spec.ModelSpec`: a small picklable record each actor builds its
@@ -34,7 +34,7 @@ def track_corpus(
 
     Args:
         videos: the corpus: each video's id (unique), file and queries
-            (`taptr.corpus.read_manifest` reads them from a CSV or Parquet manifest). Their
+            (`taptr.corpus.read_video_list` reads them from a CSV or Parquet video list). Their
             settings digests are set here, from the model and the options.
         model: the tracker (None: the default model, `ModelSpec()`), loaded once in each
             actor; its ``device`` is the actors' (None: a GPU where the actor has one).

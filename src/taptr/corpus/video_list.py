@@ -1,14 +1,14 @@
-"""Corpus manifests: a CSV or Parquet table with one row per video.
+"""Corpus video lists: a CSV or Parquet table with one row per video.
 
 Columns (only ``path`` is required):
 
-- ``path``: a video file or image folder; relative paths are relative to the manifest's folder.
-- ``id``: the video's id in the results (default: ``path`` as written in the manifest);
+- ``path``: a video file or image folder; relative paths are relative to the video list's folder.
+- ``id``: the video's id in the results (default: ``path`` as written in the video list);
   ids are unique.
 - ``points``: the video's queries as JSON, ``[[t, x, y], ...]`` (in Parquet also a list of
   lists of numbers), at most `MAX_POINTS_CELL_BYTES` (room for `MAX_POINTS` points).
 - ``grid``: track a grid × grid grid instead; ``mask``: an image of the video's size to
-  sample points in (relative to the manifest's folder); ``query_frame``: their frame.
+  sample points in (relative to the video list's folder); ``query_frame``: their frame.
   Whole numbers, as text, integers or floats (pandas writes a column with a missing value
   as float64: ``2.0`` is 2, NaN is missing).
 
@@ -30,11 +30,11 @@ from typing import IO, Any
 from taptr.corpus.inputs import CorpusVideo, QuerySpec, points_tuple
 from taptr.messages import printable
 
-MANIFEST_SUFFIXES = (".csv", ".parquet")
-"""File suffixes read as manifests rather than videos."""
+VIDEO_LIST_SUFFIXES = (".csv", ".parquet")
+"""File suffixes read as video lists rather than videos."""
 
 COLUMNS = ("path", "id", "points", "grid", "mask", "query_frame")
-"""Every column a manifest may have."""
+"""Every column a video list may have."""
 
 MAX_POINTS = 100_000
 """Points one ``points`` cell is sized for."""
@@ -52,13 +52,13 @@ MAX_ROW_BYTES = MAX_POINTS_CELL_BYTES + 64 * 1024
 """Longest CSV line read at once."""
 
 
-def is_manifest(item: str) -> bool:
-    """Whether a command-line item names a manifest file."""
-    return Path(item).suffix.lower() in MANIFEST_SUFFIXES and Path(item).is_file()
+def is_video_list(item: str) -> bool:
+    """Whether a command-line item names a video list file."""
+    return Path(item).suffix.lower() in VIDEO_LIST_SUFFIXES and Path(item).is_file()
 
 
-def read_manifest(path: str | Path, default: QuerySpec | None) -> list[CorpusVideo]:
-    """The videos a manifest lists, in order.
+def read_video_list(path: str | Path, default: QuerySpec | None) -> list[CorpusVideo]:
+    """The videos a video list lists, in order.
 
     Args:
         path: a ``.csv`` (UTF-8, header line) or ``.parquet`` file.
@@ -68,65 +68,66 @@ def read_manifest(path: str | Path, default: QuerySpec | None) -> list[CorpusVid
         ValueError: an unknown, missing or repeated column, no rows, a bad row or cell
             (named by its row number), or an id given twice (both rows named).
     """
-    manifest = Path(path)
-    folder = manifest.parent
+    video_list = Path(path)
+    folder = video_list.parent
     videos: list[CorpusVideo] = []
     first_row: dict[str, int] = {}
-    for number, row in _rows(manifest):
+    for number, row in _rows(video_list):
         try:
             video = _video(row, folder, default)
         except (ValueError, TypeError) as error:
-            raise ValueError(f"manifest {manifest} row {number}: {error}") from None
+            raise ValueError(f"video list {video_list} row {number}: {error}") from None
         earlier = first_row.setdefault(video.video_id, number)
         if earlier != number:
             raise ValueError(
-                f"manifest {manifest}: rows {earlier} and {number} both have the id "
+                f"video list {video_list}: rows {earlier} and {number} both have the id "
                 f"{printable(video.video_id)!r}; give each video an id of its own"
             )
         videos.append(video)
     if not videos:
-        raise ValueError(f"manifest {manifest} lists no videos")
+        raise ValueError(f"video list {video_list} lists no videos")
     return videos
 
 
-def _rows(manifest: Path) -> Iterator[tuple[int, dict[str, Any]]]:
+def _rows(video_list: Path) -> Iterator[tuple[int, dict[str, Any]]]:
     """(row number, cells) of each row; the header's row is 1 in a CSV file."""
     try:
-        if manifest.suffix.lower() == ".csv":
-            yield from _csv_rows(manifest)
+        if video_list.suffix.lower() == ".csv":
+            yield from _csv_rows(video_list)
         else:
-            yield from _parquet_rows(manifest)
+            yield from _parquet_rows(video_list)
     except (OSError, csv.Error, UnicodeDecodeError) as error:
-        raise ValueError(f"manifest {manifest}: cannot read it ({error})") from None
+        raise ValueError(f"video list {video_list}: cannot read it ({error})") from None
 
 
-def _csv_rows(manifest: Path) -> Iterator[tuple[int, dict[str, Any]]]:
-    with manifest.open(encoding="utf-8-sig", newline="") as stream, _cell_limit():
+def _csv_rows(video_list: Path) -> Iterator[tuple[int, dict[str, Any]]]:
+    with video_list.open(encoding="utf-8-sig", newline="") as stream, _cell_limit():
         header_line = stream.readline(MAX_HEADER_BYTES + 1)
         if len(header_line) > MAX_HEADER_BYTES:
             raise ValueError(
-                f"manifest {manifest}: its header line is longer than {MAX_HEADER_BYTES} bytes"
+                f"video list {video_list}: its header line is longer than {MAX_HEADER_BYTES} bytes"
             )
         columns = next(csv.reader([header_line]), [])
-        _check_columns(manifest, [name.strip() for name in columns])
+        _check_columns(video_list, [name.strip() for name in columns])
         names = [name.strip() for name in columns]
         # every cell as text: ids like 007 stay as written, and points are JSON
-        for number, cells in enumerate(csv.reader(_lines(manifest, stream)), 2):
+        for number, cells in enumerate(csv.reader(_lines(video_list, stream)), 2):
             if len(cells) > len(names):
                 raise ValueError(
-                    f"manifest {manifest} row {number}: {len(cells)} cells for {len(names)} columns"
+                    f"video list {video_list} row {number}: {len(cells)} cells for "
+                    f"{len(names)} columns"
                 )
             yield number, dict(zip(names, cells, strict=False))
 
 
-def _lines(manifest: Path, stream: IO[str]) -> Iterator[str]:
+def _lines(video_list: Path, stream: IO[str]) -> Iterator[str]:
     """The file's lines, none read longer than `MAX_ROW_BYTES`."""
     number = 1
     while line := stream.readline(MAX_ROW_BYTES + 1):
         number += 1
         if len(line) > MAX_ROW_BYTES:
             raise ValueError(
-                f"manifest {manifest} line {number} is longer than {MAX_ROW_BYTES} bytes "
+                f"video list {video_list} line {number} is longer than {MAX_ROW_BYTES} bytes "
                 f"(a points cell holds at most {MAX_POINTS_CELL_BYTES} bytes)"
             )
         yield line
@@ -142,15 +143,15 @@ def _cell_limit() -> Iterator[None]:
         csv.field_size_limit(previous)
 
 
-def _parquet_rows(manifest: Path) -> Iterator[tuple[int, dict[str, Any]]]:
+def _parquet_rows(video_list: Path) -> Iterator[tuple[int, dict[str, Any]]]:
     import pyarrow.parquet as pq
 
     try:
-        file = pq.ParquetFile(manifest)
+        file = pq.ParquetFile(video_list)
     except ValueError as error:  # ArrowInvalid: not a Parquet file
-        raise ValueError(f"manifest {manifest}: cannot read it ({error})") from None
+        raise ValueError(f"video list {video_list}: cannot read it ({error})") from None
     names = file.schema_arrow.names
-    _check_columns(manifest, names)
+    _check_columns(video_list, names)
     number = 0
     for batch in file.iter_batches(batch_size=65536):
         columns = {name: batch.column(name).to_pylist() for name in batch.schema.names}
@@ -159,18 +160,18 @@ def _parquet_rows(manifest: Path) -> Iterator[tuple[int, dict[str, Any]]]:
             yield number, {name: values[index] for name, values in columns.items()}
 
 
-def _check_columns(manifest: Path, columns: list[str]) -> None:
+def _check_columns(video_list: Path, columns: list[str]) -> None:
     repeated = sorted({name for name in columns if columns.count(name) > 1})
     if repeated:
-        raise ValueError(f"manifest {manifest}: the columns {repeated} appear more than once")
+        raise ValueError(f"video list {video_list}: the columns {repeated} appear more than once")
     unknown = set(columns) - set(COLUMNS)
     if unknown:
         shown = sorted(printable(name)[:40] for name in unknown)[:5]
         raise ValueError(
-            f"manifest {manifest}: unknown columns {shown}; known: {', '.join(COLUMNS)}"
+            f"video list {video_list}: unknown columns {shown}; known: {', '.join(COLUMNS)}"
         )
     if "path" not in columns:
-        raise ValueError(f"manifest {manifest} has no 'path' column")
+        raise ValueError(f"video list {video_list} has no 'path' column")
 
 
 def _video(row: dict[str, Any], folder: Path, default: QuerySpec | None) -> CorpusVideo:
