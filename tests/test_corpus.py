@@ -268,6 +268,8 @@ def test_sigint_and_sigterm_stop_the_job_cleanly_and_a_rerun_finishes_it(tiny_ch
     stdout, stderr = job.communicate(timeout=300)
     assert job.returncode == 0, stderr
     assert "12 videos: " in stdout and " 0 failed" in stdout
+    # Ray's own notices (token authentication, worker logs) stay out of the user's way
+    assert all(line.startswith("taptr") for line in stderr.splitlines()), stderr
     ids = pq.read_table(out / "tracks")["video_id"].to_pylist()
     assert sorted(set(ids)) == [str(folder / f"c{i:02d}.mp4") for i in range(12)]
     assert all(ids.count(video) == 4 for video in set(ids))  # each video's rows once

@@ -191,7 +191,7 @@ def _init(ray: ModuleType, address: str | None) -> None:
         ray.init(
             address=address,
             log_to_driver=False,  # the actors' lines are in Ray's logs; ours are events
-            logging_level=logging.WARNING,
+            logging_level=logging.ERROR,  # its token-authentication notice: docs/CORPUS.md
             configure_logging=True,
         )
     except (ConnectionError, ray.exceptions.RayError, RuntimeError) as error:
