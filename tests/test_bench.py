@@ -173,3 +173,23 @@ def test_bench_compares_dtypes_in_one_command(tmp_path, capsys):
     assert change["speedup"] > 0 and change["visibility_decisions"] == 9 * 5
     assert 0 < change["max_position_change_px"] < 5
     assert main([*argv, "--dtype", "float32", "bfloat16"]) == 2  # one execution at a time
+
+
+def test_decoder_step_benchmark_runs_on_a_tiny_case(tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    script = root / "benchmarks" / "decoder_step.py"
+    case = ["--preset", "tiny-v3", "--size", "48", "64", "--queries", "3", "--frames", "3"]
+    case += ["--turns", "1", "--threads", "1"]
+    for extra in ([], ["--against", str(root / "src")]):
+        out = tmp_path / "step.json"
+        command = [sys.executable, str(script), *case, *extra, "--json", str(out)]
+        done = subprocess.run(command, capture_output=True, text=True)
+        assert done.returncode == 0, done.stderr
+        (result,) = json.loads(out.read_text())["queries"].values()
+        assert result["model_points"] == 3 + 36  # the predictor's grid of support points
+        assert all(seconds > 0 for seconds in result["seconds_per_frame"].values())
+        assert result["max_position_difference"] < 1e-4
