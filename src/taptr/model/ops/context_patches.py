@@ -95,8 +95,8 @@ class _PatchTables(NamedTuple):
     """`patch_corners`' constants of one shape, laid out (L, axis, P, K, corner, n)-wise.
 
     The last axis n runs over (B, Q, M), so every elementwise pass of `patch_corners`
-    broadcasts these over a long contiguous axis (the per-axis layout before this one
-    broadcast over inner axes of two and three, which no vector loop covers).
+    broadcasts these over a long contiguous axis; in point order the passes would broadcast
+    over inner axes of two and three, too short for a vector loop.
     """
 
     shift: Tensor  # (L, 2, 1, K, 1): pixel offset of step k from the location's, minus 0.5
