@@ -25,6 +25,34 @@ def test_bench_command_on_a_tiny_case(tmp_path, capsys):
     assert set(fast["stage_seconds"]) == {"backbone", "input_projections", "encoder", "decoder"}
     assert case["agreement"]["max_position_difference"] < 1e-4
     assert case["agreement"]["visibility_decisions_equal"]
+    # --flops: every stage's FLOPs (the points' content is made outside them), the roofline
+    stage_flops = fast["extra"]["stage_flops"]
+    assert set(stage_flops) == set(fast["stage_seconds"]) and stage_flops["encoder"] > 0
+    assert 0.5 * fast["flops"] < sum(stage_flops.values()) <= fast["flops"]
+    assert data["peaks"]["float32"] > 0 and set(data["peaks"]) == {"float32", "bfloat16", "int8"}
+    assert "share of peak" in printed and "measured peak on 1 threads" in printed
+    assert printed.count("% float32") == 8  # four stages, two executions
+
+
+def test_roofline_rows_divide_each_stage_by_its_precisions_peak():
+    from types import SimpleNamespace
+
+    from taptr.apps.roofline import format_roofline, roofline_rows
+
+    config = {"frames": 2, "dtype": "bfloat16", "preset": "tiny", "execution": "fast"}
+    result = SimpleNamespace(
+        config=config | {"points": 5},
+        stage_seconds={"encoder": 1.0, "decoder": 0.5},
+        extra={"stage_flops": {"encoder": 8e9, "decoder": 1e9}},
+    )
+    peaks = {"float32": 10e9, "bfloat16": 20e9, "int8": None}
+    encoder, decoder = roofline_rows(result, peaks)
+    assert encoder["gflop"] == 4.0 and encoder["seconds"] == 0.5 and encoder["gflops"] == 8.0
+    assert encoder["precision"] == "bfloat16" and encoder["share"] == 0.4
+    assert decoder["gflops"] == 2.0 and decoder["share"] == 0.1
+    assert "40% bfloat16" in format_roofline([result], peaks)
+    result.config = config | {"points": 5, "dtype": "float32"}
+    assert "n/a" in format_roofline([result], peaks | {"float32": None})
 
 
 def test_benchmark_suite_lists_every_case_and_runs_the_smoke_case(tmp_path, capsys):
@@ -145,3 +173,23 @@ def test_bench_compares_dtypes_in_one_command(tmp_path, capsys):
     assert change["speedup"] > 0 and change["visibility_decisions"] == 9 * 5
     assert 0 < change["max_position_change_px"] < 5
     assert main([*argv, "--dtype", "float32", "bfloat16"]) == 2  # one execution at a time
+
+
+def test_decoder_step_benchmark_runs_on_a_tiny_case(tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    script = root / "benchmarks" / "decoder_step.py"
+    case = ["--preset", "tiny-v3", "--size", "48", "64", "--queries", "3", "--frames", "3"]
+    case += ["--turns", "1", "--threads", "1"]
+    for extra in ([], ["--against", str(root / "src")]):
+        out = tmp_path / "step.json"
+        command = [sys.executable, str(script), *case, *extra, "--json", str(out)]
+        done = subprocess.run(command, capture_output=True, text=True)
+        assert done.returncode == 0, done.stderr
+        (result,) = json.loads(out.read_text())["queries"].values()
+        assert result["model_points"] == 3 + 36  # the predictor's grid of support points
+        assert all(seconds > 0 for seconds in result["seconds_per_frame"].values())
+        assert result["max_position_difference"] < 1e-4

@@ -101,7 +101,8 @@ class BenchResult:
     """Measurements of one case (times in seconds, memory in bytes).
 
     ``extra["step_seconds"]`` holds the wall time of each window (TAPTRv2) or frame
-    (TAPTRv3) in order, encoding included where it happens then.
+    (TAPTRv3) in order, encoding included where it happens then; ``extra["stage_flops"]``
+    the FLOPs of each stage over the run when they were counted (else None).
     """
 
     config: dict[str, Any]
@@ -252,7 +253,9 @@ def run_case(config: BenchConfig, positions_out: str | None = None) -> BenchResu
     peak_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
     cuda = config.device.startswith("cuda")
     peak_cuda = torch.cuda.max_memory_allocated() if cuda else None
-    flops = _count_flops(model, config, video, queries) if config.flops else None
+    flops, stage_flops = (
+        _count_flops(model, config, video, queries) if config.flops else (None, None)
+    )
     return BenchResult(
         config=asdict(config),
         seconds_per_frame=elapsed / config.frames,
@@ -266,6 +269,7 @@ def run_case(config: BenchConfig, positions_out: str | None = None) -> BenchResu
             "frames_per_call": per_call,
             "onednn_linear": model.execution.onednn_linear,
             "channels_last": model.execution.channels_last,
+            "stage_flops": stage_flops,
         },
     )
 
@@ -289,14 +293,20 @@ def seconds_per_frame_at(result: BenchResult, frame: int, span: int = 8) -> floa
     return float(np.mean(window))
 
 
-def _count_flops(model: TAPTR, config: BenchConfig, video: torch.Tensor, queries: Any) -> int:
+def _count_flops(
+    model: TAPTR, config: BenchConfig, video: torch.Tensor, queries: Any
+) -> tuple[int, dict[str, int]]:
+    """FLOPs of the whole run and of each stage (`taptr.apps.roofline.stage_flops`)."""
     from torch.nn.attention import SDPBackend, sdpa_kernel
     from torch.utils.flop_counter import FlopCounterMode
 
+    from taptr.apps.roofline import stage_flops
+
     counter = FlopCounterMode(display=False)
-    with torch.no_grad(), sdpa_kernel(SDPBackend.MATH), counter:
+    flops_of = stage_flops(model, STAGES, counter)
+    with torch.no_grad(), sdpa_kernel(SDPBackend.MATH), counter, flops_of as stages:
         _track(model, config, video, queries)
-    return int(counter.get_total_flops())
+    return int(counter.get_total_flops()), dict(stages)
 
 
 def run_isolated(config: BenchConfig, positions_out: str | None = None) -> BenchResult:

@@ -88,7 +88,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         default="both",
         help="which execution to measure; both also compares their outputs (default both)",
     )
-    parser.add_argument("--flops", action="store_true", help="also count FLOPs (slower)")
+    parser.add_argument(
+        "--flops",
+        action="store_true",
+        help="also count FLOPs (a slower second pass) and print each stage's GFLOP, time and "
+        "share of this host's measured peak for its precision (float32, bfloat16, int8)",
+    )
     parser.add_argument(
         "--count-ops",
         action="store_true",
@@ -113,15 +118,19 @@ def run(args: argparse.Namespace) -> int:
     print(format_table(rows))
     _print_growth(rows)
     _print_comparisons(cases, args.dtype[0])
-    rate = peak_flops(args.threads) if args.device == "cpu" else None
+    peaks = _print_roofline(rows, args) if args.flops else None
+    if peaks is not None:
+        rate = peaks["float32"]
+    else:
+        rate = peak_flops(args.threads) if args.device == "cpu" else None
+        if rate:
+            print(f"measured fp32 matmul peak: {rate / 1e9:.0f} GFLOP/s on {args.threads} threads")
     if rate:
-        _print_flops(rows, rate, args.threads)
+        _print_flops(rows, rate)
     print(f"command: {command}")
     if args.json:
-        write_json(
-            args.json,
-            {"command": command, "machine": machine(), "peak_flops": rate, "cases": cases},
-        )
+        record = {"command": command, "machine": machine(), "peak_flops": rate, "cases": cases}
+        write_json(args.json, record | {"peaks": peaks})
     return 0
 
 
@@ -203,17 +212,32 @@ def _print_comparisons(cases: list[dict], dtype: str) -> None:
             )
 
 
-def _print_flops(rows: list, rate: float, threads: int) -> None:
-    """The measured matmul peak and each row's share of it."""
-    print(f"measured fp32 matmul peak: {rate / 1e9:.0f} GFLOP/s on {threads} threads")
+def _print_flops(rows: list, rate: float) -> None:
+    """Each row's whole run against the float32 peak ``rate`` (FLOP/s)."""
     for row in rows:
         if row.flops:
             achieved = row.flops / (row.seconds_per_frame * row.config["frames"])
             print(
                 f"  {row.config['preset']} {row.config['execution']} "
-                f"N={row.config['points']}: "
-                f"{achieved / 1e9:.0f} GFLOP/s = {achieved / rate:.0%} of peak"
+                f"N={row.config['points']}, whole run: "
+                f"{achieved / 1e9:.0f} GFLOP/s = {achieved / rate:.0%} of the float32 peak"
             )
+
+
+def _print_roofline(rows: list, args: argparse.Namespace) -> dict[str, float | None]:
+    """``--flops``: each stage's GFLOP, time and share of this host's peak for its precision.
+
+    Returns the peaks (FLOP/s; None where not measured: not on a CPU, or not here).
+    """
+    from taptr.apps.roofline import PRECISIONS, format_peaks, format_roofline, peak_rates
+
+    if args.device == "cpu":
+        peaks = peak_rates(args.threads)
+        print(format_peaks(peaks, args.threads))
+    else:
+        peaks = dict.fromkeys(PRECISIONS)
+    print(format_roofline(rows, peaks))
+    return peaks
 
 
 def count_ops(args: argparse.Namespace, command: str) -> int:

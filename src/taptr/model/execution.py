@@ -15,7 +15,8 @@ to the encoder, the decoder and their attentions as an argument: no submodule ho
   (`taptr.model.ops.row_blocks`), the decoder's key and value tables made once per frame
   and shared by the windows that overlap on it, frames channels-last into the backbone,
   its batch norms in place, linear layers as oneDNN inner products on x86 CPUs, and
-  TAPTRv3's long-temporal attention through per-head query products.
+  TAPTRv3's long-temporal attention through per-head query products, and its
+  cross-attention's values projected after sampling where that costs less.
 - ``training``: what `taptr.train` builds. The ``grid_sample`` kernel, because its backward
   is about half the cost of the gather kernel's on CPU (``embedding_bag``'s backward sorts
   every index: 2.4 vs 4.0 s per small-preset step); grouped point attention; and row blocks
@@ -73,6 +74,10 @@ class Execution:
             stay below the allocator's mmap threshold); None takes all queries at once.
             Accelerators bound the blocks by memory only
             (`taptr.model.ops.context_patches.sample_block`).
+        values_after_sampling: TAPTRv3's context-aware attention samples the memory and
+            projects each point's sampled vector, instead of projecting every token into a
+            value table, where that costs less for the frame's shape
+            (`taptr.model.ops.memory_values`): the same sums in another order.
     """
 
     name: str
@@ -86,6 +91,7 @@ class Execution:
     onednn_linear: bool = False
     history_products: bool = False
     sample_block: int | None = SAMPLE_BLOCK
+    values_after_sampling: bool = False
 
 
 CHANNELS_LAST_MIN_PIXELS = 192 * 192
@@ -108,6 +114,7 @@ EXECUTIONS: dict[str, Execution] = {
         in_place_norms=True,
         onednn_linear=True,
         history_products=True,
+        values_after_sampling=True,
     ),
     "training": Execution("training", "grid_sample", True, ROW_BLOCK),
 }

@@ -9,6 +9,8 @@ execution asks for the faster ones:
   row gathers (`gather`, several times faster on CPU, no layout copies). `value_table`
   lays the projected values out for a kernel and `deform_attn` samples them;
   `key_aware_attn` takes the memory and its projections; each runs the kernel it is given;
+- TAPTRv3's values sampled from the memory, then projected per point, where that costs
+  less than projecting every token (`memory_values`);
 - point self-attention on each frame's tracked points only (`point_attention`);
 - MLPs in cache-sized row blocks (`row_blocks`);
 - linear layers as oneDNN inner products on x86 CPUs (`dense`).

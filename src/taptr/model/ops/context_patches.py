@@ -22,6 +22,7 @@ from torch import Tensor, nn
 from taptr.model.ops.constants import kept
 from taptr.model.ops.dense import apply_linear
 from taptr.model.ops.gather import CHUNK_ELEMENTS, first_rows, gather_sum, projected_table
+from taptr.model.ops.memory_values import MemoryValues, sample_memory_values
 from taptr.model.ops.ms_deform_attn import sample_each_level
 
 if TYPE_CHECKING:
@@ -91,30 +92,36 @@ def key_table(
 
 
 class _PatchTables(NamedTuple):
-    """`patch_corners`' constants of one shape, broadcast against (…, 2, K[, 2])."""
+    """`patch_corners`' constants of one shape, laid out (L, axis, P, K, corner, n)-wise.
 
-    shift: Tensor  # (L, 1, 2, K): pixel offset of step k from the location's, minus 0.5
-    sizes: Tensor  # (L, 1, 2, 1): (W_l, H_l)
-    last: Tensor  # (L, 1, 2, 1, 1): (W_l − 1, H_l − 1)
-    zero: Tensor  # (L, 1, 2, 1, 1): zeros, the first cell
-    pair: Tensor  # (2,): (0, 1), the near and the far cell
-    start: Tensor  # (2,): (1, 0) and
-    sign: Tensor  # (2,): (−1, 1): the near weight is 1 − frac, the far one frac
-    line_rows: Tensor  # (L, 1, 1, 1): W_l · M, table rows per feature row
-    base: Tensor  # (B, 1, M, L, 1, 1, 1): first table row of each image, head and level
+    The last axis n runs over (B, Q, M), so every elementwise pass of `patch_corners`
+    broadcasts these over a long contiguous axis; in point order the passes would broadcast
+    over inner axes of two and three, too short for a vector loop.
+    """
+
+    shift: Tensor  # (L, 2, 1, K, 1): pixel offset of step k from the location's, minus 0.5
+    sizes: Tensor  # (L, 2, 1, 1, 1): (W_l, H_l)
+    last: Tensor  # (L, 2, 1, 1, 1, 1): (W_l − 1, H_l − 1)
+    pair: Tensor  # (2, 1): (0, 1), the near and the far cell
+    start: Tensor  # (2, 1): (1, 0) and
+    sign: Tensor  # (2, 1): (−1, 1): the near weight is 1 − frac, the far one frac
+    line_rows: Tensor  # (L, 1, 1, 1, 1): W_l · M, table rows per feature row
+    base: Tensor  # (L, 1, 1, 1, n): first table row of each image, head and level
 
 
 def _patch_tables(
     spatial_shapes: list[tuple[int, int]],
     patch: int,
     batch: int,
+    queries: int,
     heads: int,
     like: Tensor,
     index: torch.dtype,
 ) -> _PatchTables:
     """The constants of `patch_corners`, made once per shape (`kept`)."""
     levels = len(spatial_shapes)
-    key = ("patch", tuple(spatial_shapes), patch, batch, heads, like.device, like.dtype, index)
+    key = ("patch", tuple(spatial_shapes), patch, batch, queries, heads, like.device, like.dtype)
+    key = (*key, index)
     sizes = [[float(w), float(h)] for h, w in spatial_shapes]
     steps = [k - (patch - 1) / 2 for k in range(patch)]
     # one step is 1 / (size − 1) of a level (the official placement, module docstring):
@@ -131,20 +138,22 @@ def _patch_tables(
 
     def base() -> Tensor:
         rows = first_rows(batch, heads, starts, level_rows, index, like.device)  # (B, 1, M, L, 1)
-        return rows.view(batch, 1, heads, levels, 1, 1, 1)
+        rows = rows.view(batch, 1, heads, levels).expand(batch, queries, heads, levels)
+        return rows.permute(3, 0, 1, 2).reshape(levels, 1, 1, 1, -1)  # (L, 1, 1, 1, B·Q·M)
 
     line_rows = [w * heads for _, w in spatial_shapes]
     return _PatchTables(
-        shift=floats("shift", shift, levels, 1, 2, patch),
-        sizes=floats("sizes", sizes, levels, 1, 2, 1),
-        last=floats("last", [[w - 1, h - 1] for w, h in sizes], levels, 1, 2, 1, 1),
-        zero=floats("zero", [0.0] * 2 * levels, levels, 1, 2, 1, 1),
-        pair=floats("pair", [0.0, 1.0], 2),
-        start=floats("start", [1.0, 0.0], 2),
-        sign=floats("sign", [-1.0, 1.0], 2),
+        shift=floats("shift", shift, levels, 2, 1, patch, 1),
+        sizes=floats("sizes", sizes, levels, 2, 1, 1, 1),
+        last=floats("last", [[w - 1, h - 1] for w, h in sizes], levels, 2, 1, 1, 1, 1),
+        pair=floats("pair", [0.0, 1.0], 2, 1),
+        start=floats("start", [1.0, 0.0], 2, 1),
+        sign=floats("sign", [-1.0, 1.0], 2, 1),
         line_rows=kept(
             (*key, "lines"),
-            lambda: torch.tensor(line_rows, device=like.device, dtype=index).view(levels, 1, 1, 1),
+            lambda: torch.tensor(line_rows, device=like.device, dtype=index).view(
+                levels, 1, 1, 1, 1
+            ),
         ),
         base=kept((*key, "base"), base),
     )
@@ -158,7 +167,9 @@ def patch_corners(
     The same as `taptr.model.ops.gather.bilinear_corners` of `patch_locations` (borderless
     table), computed per axis, K values each, and combined by broadcasting: the floors,
     fractions and clamps of the K² points are those of K columns and K rows, and the near
-    and far corner of each are one more axis of two.
+    and far corner of each are one more axis of two. The work runs with the points,
+    (B, Q, M), on the last axis (`_PatchTables`); one transposing copy each of the rows
+    and the weights puts them back in point order at the end.
 
     Args:
         locations: (B, Q, M, L, P, 2) patch centres (x, y) in [0, 1] of each level.
@@ -169,27 +180,33 @@ def patch_corners(
         rows (B, Q, M, L·P·K², 4) into the (B · S · M, D) table and weights of the same
         shape, patch points in (a, b) order, corners (y0 x0, y0 x1, y1 x0, y1 x1).
     """
-    batch, _, heads, levels, points, _ = locations.shape
+    batch, queries, heads, levels, points, _ = locations.shape
     total = sum(h * w for h, w in spatial_shapes)
     index = torch.int32 if batch * total * heads < 2**31 else torch.int64
-    tables = _patch_tables(spatial_shapes, patch, batch, heads, locations, index)
-    # (B, Q, M, L, P, 2, K): pixel of each step on each axis, as patch_locations and
+    tables = _patch_tables(spatial_shapes, patch, batch, queries, heads, locations, index)
+    # (L, 2, P, 1, n), n = B·Q·M: the points last, contiguous (a view would leave them
+    # strided, and every result after it in that order)
+    along = locations.permute(3, 5, 4, 0, 1, 2).contiguous().view(levels, 2, points, 1, -1)
+    # (L, 2, P, K, n): pixel of each step on each axis, as patch_locations and
     # bilinear_corners place it; beyond one cell outside, every corner is outside
-    pixels = torch.addcmul(tables.shift, locations[..., None], tables.sizes)
+    pixels = torch.addcmul(tables.shift, along, tables.sizes)
     pixels = torch.minimum(pixels, tables.sizes).clamp_(min=-1.0)
     corner = pixels.floor()
-    frac = (pixels - corner)[..., None]  # (…, 2, K, 1)
-    corners = corner[..., None] + tables.pair  # (…, 2, K, 2): near and far cell
+    frac = (pixels - corner).unsqueeze(4)  # (L, 2, P, K, 1, n)
+    corners = corner.unsqueeze(4) + tables.pair  # (L, 2, P, K, 2, n): near and far cell
     # near: 1 − frac, far: frac; zero where the cell is outside its level
     weights = torch.addcmul(tables.start, frac, tables.sign)
     weights = weights * ((corners >= 0) & (corners <= tables.last))
-    cells = torch.clamp(corners, min=tables.zero, max=tables.last).to(index)
-    columns = cells[..., 0, :, :] * heads  # (…, K_a, 2_x)
-    lines = cells[..., 1, :, :] * tables.line_rows + tables.base  # (…, K_b, 2_y)
-    rows = lines[..., None, :, :, None] + columns[..., :, None, None, :]  # (…, K_a, K_b, 2, 2)
-    weights = weights[..., 1, None, :, :, None] * weights[..., 0, :, None, None, :]
-    shape = (*locations.shape[:3], levels * points * patch * patch, 4)
-    return rows.reshape(shape), weights.reshape(shape)
+    cells = torch.minimum(corners.clamp_(min=0.0), tables.last).to(index)
+    columns = cells[:, 0] * heads  # (L, P, K_a, 2_x, n)
+    lines = torch.addcmul(tables.base, cells[:, 1], tables.line_rows)  # (L, P, K_b, 2_y, n)
+    rows = lines[:, :, None, :, :, None] + columns[:, :, :, None, None, :]  # (L, P, a, b, y, x, n)
+    weights = weights[:, 1, :, None, :, :, None] * weights[:, 0, :, :, None, None, :]
+    shape = (batch, queries, heads, levels * points * patch * patch, 4)
+    # (n, L, P, a, b, y, x): back in point order, one copy each (the row gathers, and the
+    # patch centres' slice, read them in that order)
+    rows = rows.movedim(-1, 0).reshape(shape).contiguous()
+    return rows, weights.movedim(-1, 0).reshape(shape).contiguous()
 
 
 def sample_key_patches(
@@ -223,7 +240,7 @@ def sample_key_patches(
 
 def gather_context_attn(
     keys: Tensor,
-    values: Tensor,
+    values: Tensor | MemoryValues,
     own: Tensor,
     spatial_shapes: list[tuple[int, int]],
     locations: Tensor,
@@ -238,7 +255,8 @@ def gather_context_attn(
 
     Args:
         keys: (B · S · M, D) borderless key rows (`key_table`).
-        values: (B · S · M, D) borderless value rows.
+        values: (B · S · M, D) borderless value rows, or the memory and the value
+            projection, projected after sampling (`taptr.model.ops.memory_values`).
         own: (B, Q, M, K², D) each point's projected context.
         spatial_shapes: (H_l, W_l) per level.
         locations: (B, Q, M, L, P, 2) patch centres in [0, 1].
@@ -262,8 +280,14 @@ def gather_context_attn(
     centre = (batch, queries, heads, levels * points, k2, 4)
     centre_rows = rows.view(centre)[..., k2 // 2, :]  # (B, Q, M, L·P, 4)
     centre_weights = weights.view(centre)[..., k2 // 2, :] * scores.softmax(-1)[..., None]
-    out = gather_sum(values, centre_rows.flatten(-2), centre_weights.flatten(-2))  # (B, Q, M, D)
-    return out.to(own.dtype).view(batch, queries, -1), scores
+    if isinstance(values, MemoryValues):
+        out = sample_memory_values(
+            values, centre_rows.flatten(-2), centre_weights.flatten(-2), heads
+        )
+    else:
+        out = gather_sum(values, centre_rows.flatten(-2), centre_weights.flatten(-2))
+    # out: (B, Q, M, D)
+    return out.to(own.dtype).reshape(batch, queries, -1), scores
 
 
 ACCELERATOR_BLOCK = 1 << 27

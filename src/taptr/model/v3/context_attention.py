@@ -40,6 +40,7 @@ from taptr.model.ops.context_patches import (
     sample_key_patches,
 )
 from taptr.model.ops.gather import projected_table
+from taptr.model.ops.memory_values import MemoryValues, values_after_sampling
 
 
 class ContextAwareDeformableAttention(KeyAwareDeformableAttention):
@@ -119,15 +120,19 @@ class ContextAwareDeformableAttention(KeyAwareDeformableAttention):
         """Output (B, Q, C) and logits (B, Q, M, L·P) by the ``gather`` kernel's row gathers."""
         heads, onednn = self.num_heads, execution.onednn_linear
         keys = key_table("gather", memory, self.key_proj, spatial_shapes, heads, onednn=onednn)
-        values = projected_table(
-            memory,
-            self.value_proj,
-            spatial_shapes,
-            heads,
-            border=False,
-            onednn=onednn,
-            bfloat16_rows=False,
-        )
+        values: Tensor | MemoryValues
+        if self._values_after_sampling(locations, memory, execution):
+            values = MemoryValues(memory, self.value_proj)
+        else:
+            values = projected_table(
+                memory,
+                self.value_proj,
+                spatial_shapes,
+                heads,
+                border=False,
+                onednn=onednn,
+                bfloat16_rows=False,
+            )
         return gather_context_attn(
             keys,
             values,
@@ -136,6 +141,21 @@ class ContextAwareDeformableAttention(KeyAwareDeformableAttention):
             locations,
             lambda products: self.similarity(products, execution).squeeze(-1),
             sample_block(execution, memory),
+        )
+
+    def _values_after_sampling(
+        self, locations: Tensor, memory: Tensor, execution: Execution
+    ) -> bool:
+        """Whether to sample the memory before projecting the values (shapes only)."""
+        if not execution.values_after_sampling:
+            return False
+        batch, queries, heads, levels, points = locations.shape[:5]
+        return values_after_sampling(
+            batch * queries,
+            levels * points,
+            memory.shape[0] * memory.shape[1],
+            memory.shape[2],
+            heads,
         )
 
     def logits(
