@@ -78,3 +78,21 @@ def test_the_rooms_have_no_import_cycle():
     rooms, edges, _ = metrics.room_graph(PACKAGE)
     floors = metrics.floors(edges, rooms, strict=True)
     assert sum(len(f) for f in floors) == len(rooms)
+
+
+def test_the_code_keeps_no_benchmark_history():
+    """Comments say why; the dated measurements of particular hosts live in the docs.
+
+    A host name or a date in the source is a measurement that will go stale there
+    (docs/BENCHMARKS.md and BENCHMARKS_LOG.md keep them with their commands);
+    `model/ops/cpu_features` names CPUs to explain ``TAPTR_CPU``, not to report speeds.
+    """
+    history = re.compile(r"\b20\d\d-\d\d-\d\d\b|\b(EPYC|Xeon|Ryzen|Graviton)\b")
+    found = [
+        f"{path.relative_to(PACKAGE)}:{number}: {line.strip()}"
+        for path in sorted(PACKAGE.rglob("*.py"))
+        if path.name != "cpu_features.py"
+        for number, line in enumerate(path.read_text().splitlines(), 1)
+        if history.search(line)
+    ]
+    assert not found, "benchmark history in the code:\n" + "\n".join(found)

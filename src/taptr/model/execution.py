@@ -62,8 +62,8 @@ class Execution:
             outputs they normalise (one pass, no new tensor) instead of two fresh
             tensors each; inference only, the same values (`taptr.model.backbone`).
         onednn_linear: linear layers at inference run as oneDNN inner products on x86
-            CPUs in float32 (`taptr.model.ops.dense`): on the AMD EPYC host measured, twice
-            the rate of the MKL product ``F.linear`` runs there. Elsewhere, and where
+            CPUs in float32 (`taptr.model.ops.dense`), where they may run wider kernels
+            than the BLAS product ``F.linear`` runs. Elsewhere, and where
             autograd records, they run ``F.linear``. Same values up to rounding.
         history_products: TAPTRv3's long-temporal attention scores and mixes the held
             frames through per-head products of each query instead of projecting every
@@ -95,10 +95,9 @@ class Execution:
 
 
 CHANNELS_LAST_MIN_PIXELS = 192 * 192
-"""Frames smaller than this enter the backbone as they are. On one thread of an AMX Xeon
-(2026-12-04), the ResNet-50 trunk with in-place norms took 37.0 ms per 128 x 128 frame
-channels-last and 33.0 ms without, and 65.2 against 72.2 ms at 192 x 192 (419.8 against
-530.5 ms at 512 x 512)."""
+"""Frames smaller than this enter the backbone as they are: below it the reordering into
+channels-last costs more than oneDNN's faster convolutions save (measured:
+docs/BENCHMARKS_LOG.md)."""
 
 
 EXECUTIONS: dict[str, Execution] = {

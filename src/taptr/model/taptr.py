@@ -135,9 +135,10 @@ class TAPTR(nn.Module):
 
         A ResNet's frozen norms are first folded into its convolutions
         (`taptr.model.backbone.ResNetBody.fold_norms`). Its convolutions then run through
-        oneDNN's bfloat16 kernels (2.1x float32 on one thread of an AMX Xeon at 512 x 512)
-        and its weights take half the memory; the maps it hands on are float32. For
-        inference only: the folded trunk has other parameter names. Returns the model.
+        oneDNN's bfloat16 kernels (about twice float32 where the CPU multiplies bfloat16
+        natively, docs/BENCHMARKS.md) and its weights take half the memory; the maps it
+        hands on are float32. For inference only: the folded trunk has other parameter
+        names. Returns the model.
         """
         if isinstance(self.backbone.body, ResNetBody):
             self.backbone.body.fold_norms()

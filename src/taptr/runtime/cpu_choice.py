@@ -2,12 +2,12 @@
 
 Two settings of the ``fast`` execution were tuned on particular CPUs and change speed only:
 
-- **Products**: oneDNN inner products (`taptr.model.ops.dense`) ran the paper model's
-  linear layers at twice MKL's rate on the AMD EPYC measured (docs/BENCHMARKS.md); on Intel
-  CPUs MKL may match or pass it. Timed on the model's own encoder FFN, a block of rows.
+- **Products**: oneDNN inner products (`taptr.model.ops.dense`) or the BLAS for the linear
+  layers: either may be the faster, by the CPU and the build (docs/BENCHMARKS.md). Timed on
+  the model's own encoder FFN, a block of rows.
 - **Layout**: channels-last frames into the backbone, used from `CHANNELS_LAST_MIN_PIXELS`
-  up (faster there on the AMX Xeon measured, slower below). Timed on the backbone at the
-  input size where the rule would use it; below the threshold frames stay as they are.
+  up, where it pays on the CPUs measured. Timed on the backbone at the input size where the
+  rule would use it; below the threshold frames stay as they are.
 
 Each is timed once per machine, model and input size and remembered
 (`taptr.runtime.measured`). Inside `dense.bfloat16_products` the products stay oneDNN's,

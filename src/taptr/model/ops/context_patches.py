@@ -321,8 +321,8 @@ def _patch_products(sampled: Tensor, own: Tensor, locations: int) -> Tensor:
     flat_own = own.reshape(-1, k2, channels)  # (B·Q·M, K², D)
     # bfloat16 key rows (`dense.bfloat16_products`) give bfloat16 samples
     keys = sampled.to(own.dtype).view(flat_own.shape[0], -1, channels)  # (B·Q·M, J·K², D)
-    # (K² × D) by (D × J·K²) products run 1.6× faster than (J·K² × D) by (D × K²) ones
-    # (a 9-column result) with the reordering copy included (2-core AMD EPYC)
+    # the wide result (K² rows by J·K² columns) keeps the product's kernels busy where the
+    # tall one (J·K² rows by only K² columns) would not, even with the reordering copy
     products = torch.bmm(flat_own, keys.transpose(1, 2))  # (B·Q·M, K²_y, J·K²_x)
     products = products.view(batch, queries, heads, k2, locations, k2).permute(0, 1, 2, 4, 5, 3)
     return products.reshape(batch, queries, heads, locations, k2 * k2)

@@ -1,17 +1,12 @@
 """Linear layers as oneDNN inner products on x86 CPUs, at inference.
 
-PyTorch runs a float32 ``F.linear`` on CPU through its BLAS (MKL in the official wheels).
-On the AMD EPYC (AVX-512) host this was measured on, MKL's sgemm held 140-200 GFLOP/s on
-two threads where oneDNN, the library behind PyTorch's CPU convolutions, held 340-430 on
-the same products (the 256 → 2048 and 2048 → 256 FFN products, the 256 × 256 projections;
-docs/BENCHMARKS.md, ``benchmarks/gemm_floor.py``), the factor of two between AVX2 and
-AVX-512 kernels (oneDNN reports AVX-512 there; MKL's choice is not reported).
-``MKL_ENABLE_INSTRUCTIONS=AVX512`` did not change MKL's rate. On Intel CPUs both libraries
-are expected to run AVX-512 at about the same rate (not measured here). On 2026-12-05, with
-PyTorch 2.14.1 on an AMD EPYC, the two were within 8% on the encoder's FFN
-(``benchmarks/host_choices.py``): the gap depends on the build and the host, so the
-predictor times both once per host and keeps the faster (`taptr.runtime.cpu_choice`). The
-same sums in another order: results agree with ``F.linear`` up to float rounding.
+PyTorch runs a float32 ``F.linear`` on CPU through its BLAS (MKL in the official wheels),
+which may pick AVX2 kernels on AMD CPUs where oneDNN, the library behind PyTorch's CPU
+convolutions, runs AVX-512 ones: the same products can then differ by up to twice in rate.
+The gap depends on the build and the host (docs/BENCHMARKS.md, ``benchmarks/gemm_floor.py``,
+``benchmarks/host_choices.py``), so the predictor times both once per host and keeps the
+faster (`taptr.runtime.cpu_choice`). The same sums in another order: results agree with
+``F.linear`` up to float rounding.
 
 oneDNN's inner product is reached through ``torch.ops.mkldnn._linear_pointwise``, the op
 ``torch.compile``'s CPU backend emits for linear layers. It has no backward, so it is used

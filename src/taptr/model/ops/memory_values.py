@@ -28,10 +28,9 @@ from torch import Tensor, nn
 from taptr.model.ops.gather import gather_sum
 
 GATHERED_ELEMENT_COST = 6.0
-"""One float read by a row gather, in multiply-adds of the table's large product. On the
-2-core AMD EPYC (2026-12-07, 1 thread, PyTorch 2.14.1) ``embedding_bag`` summed four
-256-channel memory rows per sample at 0.16 ns an element, while oneDNN projected the
-16,320 × 256 memory at 0.027 ns a multiply-add."""
+"""One float read by a row gather, in multiply-adds of the table's large product: a gather
+reads scattered rows where the product streams its operands through the caches, so an
+element gathered costs several multiply-adds (the ratio measured: docs/BENCHMARKS_LOG.md)."""
 
 
 class MemoryValues(NamedTuple):

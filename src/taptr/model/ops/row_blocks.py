@@ -14,18 +14,16 @@ from torch import Tensor, nn
 from taptr.model.ops.dense import apply_linear, onednn_applies
 
 ROW_BLOCK = 2048
-"""Rows per block in the ``fast`` execution. Unblocked, the encoder FFN is 1.5x slower on
-one thread; among block sizes, paired runs on two threads (inside encoder blocks of 4,096
-tokens) put 2,048 rows ahead of 512 by 1.03x for the encoder and 1.02x for the whole
-tracker (docs/BENCHMARKS.md), and 4,096 (no blocking inside an encoder block) 1.24x behind
-2,048; the decoder measured within 1% with 512, 1,024 and 2,048."""
+"""Rows per block in the ``fast`` execution: an FFN's 2,048-wide hidden rows of a block stay
+in the caches between its two products, where a whole frame's would not (the block sizes
+compared: docs/BENCHMARKS_LOG.md)."""
 
 ENCODER_BLOCK = 4096
 """Tokens per block of an encoder layer in the ``fast`` execution: everything after the
 value table (sampling locations, corner rows and weights, output projection, norms, FFN)
 for 4,096 tokens is at most about 8 MB per intermediate, where a 512 × 512 frame's 21,760
-tokens make them tens of megabytes. Paired against 1,024 on a steady host, 4,096 was 1.10×
-faster (fewer per-block small operations); 2,048 and 8,192 measured within 2% of it."""
+tokens make them tens of megabytes; smaller blocks pay more small per-block operations (the
+sizes compared: docs/BENCHMARKS_LOG.md)."""
 
 
 def tracks_grad(module: nn.Module, x: Tensor) -> bool:
