@@ -1,12 +1,14 @@
 """The quick start on a machine that other work shares: thread counts and wait policies.
 
-Starts ``--busy`` processes that keep a core each busy, then runs the README's quick
+Starts ``--busy`` processes that keep the cores busy (``--kind python``: a loop each, one
+core; ``--kind torch``: PyTorch products on every core, OpenMP's default waits, as another
+model or a test run would), then runs the README's quick
 start (``taptr track sample.mp4 --grid 8``) once per setting, the settings interleaved
 over ``--turns`` turns, and prints each setting's best and median seconds and its ratio
 to the best setting at the same load. The settings: taptr's default (no variables; the
 command chooses), and each thread count with OpenMP's default and passive wait policies.
 
-``python benchmarks/shared_machine.py --busy 2 --turns 3 [--json FILE]``
+``python benchmarks/shared_machine.py --busy 2 --kind torch --turns 3 [--json FILE]``
 """
 
 from __future__ import annotations
@@ -39,6 +41,17 @@ def spin() -> None:
         pass
 
 
+def multiply() -> None:
+    """Keeps every core busy with PyTorch products (its default threads and waits)."""
+    os.environ.pop("OMP_WAIT_POLICY", None)
+    os.environ.pop("OMP_NUM_THREADS", None)
+    import torch
+
+    a = torch.randn(384, 384)
+    while True:
+        a = torch.tanh(a @ a)
+
+
 def quick_start(folder: Path, overrides: dict[str, str]) -> float:
     """Seconds of ``taptr track sample.mp4 --grid 8`` with the environment ``overrides``."""
     env = {k: v for k, v in os.environ.items() if k not in ("OMP_NUM_THREADS", "OMP_WAIT_POLICY")}
@@ -53,10 +66,13 @@ def main(argv: list[str] | None = None) -> int:
     """Prints (and writes, if asked) each setting's seconds at the load asked."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--busy", type=int, default=2, help="busy processes (default 2)")
+    parser.add_argument("--kind", choices=("python", "torch"), default="torch")
     parser.add_argument("--turns", type=int, default=3)
     parser.add_argument("--json", help="write the results to this file")
     args = parser.parse_args(argv)
-    spinners = [multiprocessing.Process(target=spin, daemon=True) for _ in range(args.busy)]
+    work = spin if args.kind == "python" else multiply
+    context = multiprocessing.get_context("spawn")  # no OpenMP state inherited
+    spinners = [context.Process(target=work, daemon=True) for _ in range(args.busy)]
     with tempfile.TemporaryDirectory() as scratch:
         folder = Path(scratch)
         subprocess.run(["taptr", "sample-video", str(folder / "sample.mp4")], check=True)
@@ -73,7 +89,7 @@ def main(argv: list[str] | None = None) -> int:
             for spinner in spinners:
                 spinner.kill()
     best = min(min(values) for values in seconds.values())
-    print(f"quick start with {args.busy} busy process(es), {os.cpu_count()} cores:")
+    print(f"quick start beside {args.busy} busy {args.kind} process(es), {os.cpu_count()} cores:")
     for name, values in seconds.items():
         print(
             f"  {name:32s} best {min(values):6.1f} s  median {statistics.median(values):6.1f} s"
