@@ -5,7 +5,7 @@ Per point count, in float32, with PyTorch and onnxruntime on the same threads:
 - the per-frame decoder step, frames encoded beforehand (the same memory for all three):
   PyTorch eager (the predictor's step), PyTorch captured (Inductor, compiled once before
   timing: `taptr.runtime.step_capture`), and the exported ``decode_step`` driven by the
-  torch-free loop (`taptr.export.v3_loop`);
+  torch-free loop (`taptr.onnx.frame_loop`);
 - whole videos, encoding included: ``Predictor.track`` (capture off, which is what
   ``auto`` picks for a 24-frame video here) against the torch-free ``OnnxTracker.track``,
   both with the model's support points.
@@ -35,13 +35,13 @@ import torch
 from taptr.api.predictor import Predictor
 from taptr.apps.benchmark import machine
 from taptr.export.v3_graphs import export_v3
-from taptr.export.v3_loop import add_points, decode_frame, start_state
-from taptr.export.v3_sessions import OnnxGraphs
-from taptr.export.v3_tracker import OnnxTracker
 from taptr.model.build import build_model
 from taptr.model.taptr import normalize_frames
 from taptr.model.trajectory import QuerySet
 from taptr.model.v3.per_frame import run_frames
+from taptr.onnx.frame_loop import add_points, decode_frame, start_state
+from taptr.onnx.graph_engines import StepGraphs, open_graphs
+from taptr.onnx.video_tracker import OnnxTracker
 from taptr.runtime import step_capture
 from taptr.runtime.frames import PrecomputedFrames
 from taptr.runtime.step_capture import StepCapture
@@ -67,7 +67,7 @@ def step_torch(model, memory, xy, capture: str) -> tuple[Callable[[], Any], str]
     return run, f"step_{'captured' if capture == 'on' else 'eager'}"
 
 
-def step_onnx(graphs: OnnxGraphs, memory: np.ndarray, xy: np.ndarray) -> Callable[[], Any]:
+def step_onnx(graphs: StepGraphs, memory: np.ndarray, xy: np.ndarray) -> Callable[[], Any]:
     """The exported step through the torch-free loop over the same memory; positions."""
 
     def run() -> np.ndarray:
@@ -163,7 +163,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def run_cases(args: argparse.Namespace, model: torch.nn.Module, folder: str) -> dict:
     """Every point count's cases over the export in ``folder``."""
-    graphs = OnnxGraphs(folder, threads=args.threads)
+    graphs = open_graphs(folder, "onnxruntime", threads=args.threads)
     tracker = OnnxTracker(graphs=graphs)
     predictor = Predictor(model, device="cpu", capture="off")
     video = np.random.default_rng(0).integers(0, 256, (args.frames, *args.size, 3), np.uint8)

@@ -14,8 +14,8 @@ import pytest
 
 import taptr
 from taptr.export.v3_graphs import export_v3
-from taptr.export.v3_loop import track_points
-from taptr.export.v3_sessions import OnnxGraphs
+from taptr.onnx.frame_loop import track_points
+from taptr.onnx.ort_engine import OnnxRuntimeGraphs as OnnxGraphs
 from tests.helpers import load_golden
 
 pytest.importorskip("onnxruntime")
