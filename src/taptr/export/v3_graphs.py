@@ -24,7 +24,7 @@ from torch import Tensor, nn
 
 from taptr.config import check_history_frames
 from taptr.export.exporter import ONNX_OPSET, export_onnx_graph, require_onnx_exporter
-from taptr.export.modules import FrameEncoder, feature_shapes
+from taptr.export.modules import FixedSizeEncoder, feature_shapes
 from taptr.export.v3_attention import packed_model
 from taptr.export.v3_modules import (
     EXPORT_EXECUTION,
@@ -127,7 +127,7 @@ def v3_wrappers(model: TAPTRv3, manifest: V3Manifest) -> dict[str, nn.Module]:
     shapes = [(h, w) for h, w in manifest.spatial_shapes]
     with_context = manifest.context_patch > 0
     modules: dict[str, nn.Module] = {
-        "encoder": FrameEncoder(model),
+        "encoder": FixedSizeEncoder(model, shapes),
         "start_points": (PointStarter if with_context else PointStarterWithoutContext)(
             model, shapes
         ),

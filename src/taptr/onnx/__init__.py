@@ -32,6 +32,7 @@ _EXPORTS = {
     "ENGINES": "taptr.onnx.graph_engines",
     "StepGraphs": "taptr.onnx.graph_engines",
     "OnnxRuntimeGraphs": "taptr.onnx.ort_engine",
+    "OpenVinoGraphs": "taptr.onnx.openvino_engine",
     "V3Manifest": "taptr.onnx.v3_manifest",
     "ManifestError": "taptr.onnx.manifest_schema",
 }

@@ -77,6 +77,9 @@ ENGINES: dict[str, GraphEngine] = {
         GraphEngine(
             "onnxruntime", "taptr.onnx.ort_engine:OnnxRuntimeGraphs", "onnxruntime", "export"
         ),
+        GraphEngine(
+            "openvino", "taptr.onnx.openvino_engine:OpenVinoGraphs", "openvino", "openvino"
+        ),
     )
 }
 """Every engine by name."""
