@@ -80,6 +80,8 @@ def query_tensor(
             points; or results that would not fit in the available memory.
     """
     q = _real_tensor(queries).detach().to("cpu", torch.float64)
+    if q.shape == (0,):  # an empty list: no queries
+        q = q.reshape(0, 3)
     if q.dim() == 2:
         q = q[None].expand(batch, -1, -1)
     if q.dim() != 3 or q.shape[-1] != 3 or q.shape[0] != batch:

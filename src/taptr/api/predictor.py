@@ -137,7 +137,9 @@ class Predictor:
         notice: str | None = None,
     ) -> None:
         config = model.config
-        height, width = input_size or (config.input_size if config else (512, 512))
+        if input_size is None:  # an explicit size is used as given, never replaced
+            input_size = config.input_size if config else (512, 512)
+        height, width = input_size
         self.input_size: tuple[int, int] = (int(height), int(width))
         self.runner = Runner(
             model,

@@ -67,7 +67,7 @@ def _manifest(
     if model.config is None:
         raise ValueError("the model has no config; build or load it with taptr")
     config = model.config
-    height, width = input_size or config.input_size
+    height, width = config.input_size if input_size is None else input_size
     size = (int(height), int(width))
     return ExportManifest(
         format=format,

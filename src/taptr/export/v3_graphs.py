@@ -95,7 +95,7 @@ def v3_manifest(
         raise ValueError("the model has no config; build or load it with taptr")
     limit = model.history_frames if history_frames is None else history_frames
     check_history_frames(limit)
-    height, width = input_size or config.input_size
+    height, width = config.input_size if input_size is None else input_size
     size = (int(height), int(width))
     shapes = tuple(feature_shapes(model, size))
     tokens = sum(h * w for h, w in shapes)

@@ -84,7 +84,7 @@ class OpenVinoGraphs:
         core = openvino.Core()
         self.requests = {}
         for name, path in graph_files(self.manifest, directory).items():
-            compiled = _compiled(core, path, device, config)
+            compiled = _compiled(openvino, core, path, device, config)
             inputs = [port.get_any_name() for port in compiled.inputs]
             outputs = [port.get_any_name() for port in compiled.outputs]
             check_signature(self.manifest, name, path, inputs, outputs)
@@ -112,10 +112,17 @@ class OpenVinoGraphs:
         return tuple(self._run("decode_step", inputs))
 
 
-def _compiled(core: Any, path: str, device: str, config: dict[str, str]) -> Any:
-    """One graph compiled for ``device``; OpenVINO's failures as one-line ValueErrors."""
+def _compiled(openvino: Any, core: Any, path: str, device: str, config: dict[str, str]) -> Any:
+    """One graph read as ONNX and compiled for ``device``; failures as one-line ValueErrors.
+
+    The ONNX front end is named: left to choose, OpenVINO tries every format it reads
+    (TensorFlow, PaddlePaddle, ...) on a file that is not ONNX.
+    """
+    frontend = openvino.frontend
+    failures = tuple(getattr(frontend, n) for n in dir(frontend) if n.endswith("Failure"))
     try:
-        return core.compile_model(path, device, config)
-    except RuntimeError as error:
+        onnx = frontend.FrontEndManager().load_by_framework("onnx")
+        return core.compile_model(onnx.convert(onnx.load(path)), device, config)
+    except (RuntimeError, *failures) as error:
         reason = " ".join(str(error).split())[:240]
         raise ValueError(f"{path}: OpenVINO cannot compile it for {device} ({reason})") from None

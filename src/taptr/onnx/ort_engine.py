@@ -122,7 +122,7 @@ def open_sessions(
     """
     onnxruntime = onnxruntime_module()
     options = session_options(threads)
-    chosen = providers or ["CPUExecutionProvider"]
+    chosen = ["CPUExecutionProvider"] if providers is None else providers
     sessions = {}
     for name, path in graphs.items():
         try:
@@ -169,7 +169,7 @@ class OnnxRuntimeGraphs:
         trt_cache: str | None = None,
     ) -> None:
         onnxruntime_module()  # its message before the manifest's
-        chosen = providers or preset_providers(preset, trt_cache)
+        chosen = preset_providers(preset, trt_cache) if providers is None else providers
         if providers is None:
             check_available(preset)
         self.manifest = V3Manifest.load(directory)

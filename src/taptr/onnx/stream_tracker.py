@@ -190,8 +190,8 @@ class OnnxOnlineTracker:
         else:
             brought = len(scheme.added(starts, xy, pattern).parents)
             total = len(stream.loop.start_frames) + len(starts) + brought
-        limit = self.tracker.history_frames
-        check_run_memory(self.manifest, total, stream.num_frames, limit)
+        limit, weights = self.tracker.history_frames, self.tracker.graph_bytes
+        check_run_memory(self.manifest, total, stream.num_frames, limit, weights)
 
     def _decode_until(self, stream: OnnxStream, last: int) -> StreamUpdate:
         """Decodes frames up to ``last`` and returns them for the user's points."""

@@ -23,7 +23,7 @@ import numpy as np
 from taptr.config import check_history_frames
 from taptr.onnx.frame_loop import track_points
 from taptr.onnx.graph_engines import StepGraphs, open_graphs
-from taptr.onnx.run_memory import check_run_memory
+from taptr.onnx.run_memory import check_run_memory, graphs_bytes
 from taptr.onnx.v3_manifest import V3Manifest
 from taptr.query_checks import grid_points
 from taptr.task.both_ways import both_ways
@@ -138,6 +138,7 @@ class OnnxTracker:
             if directory is None:
                 raise ValueError("pass the export folder")
             graphs = open_graphs(directory, engine, threads=threads, **options)
+        self.graph_bytes = graphs_bytes(directory)
         self.graphs = graphs
         self.manifest: V3Manifest = graphs.manifest
         self.support_points = support_points
@@ -184,7 +185,7 @@ class OnnxTracker:
         points = len(query) + self.chosen_support(len(query)).count(
             len(query), self.support_pattern
         )
-        check_run_memory(self.manifest, points, num_frames, self.history_frames, backward)
+        check_run_memory(self.manifest, points, num_frames, self.history_frames, self.graph_bytes)
 
         def one_pass(pass_queries: np.ndarray, reverse: bool) -> tuple[np.ndarray, np.ndarray]:
             return self._forward_pass(video, pass_queries, reverse)

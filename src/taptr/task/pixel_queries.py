@@ -25,7 +25,8 @@ def pixel_queries(queries: Any, num_frames: int | None, height: int, width: int)
     """Validated (N, 3) float32 (t, x, y) pixel queries of one video.
 
     Args:
-        queries: (N, 3) array-like of real numbers (t, x, y), pixel centres at integers.
+        queries: (N, 3) array-like of real numbers (t, x, y), pixel centres at integers
+            (an empty list: no queries).
         num_frames: frames T of the video, or None for a stream of unknown length.
         height: frame height H.
         width: frame width W.
@@ -42,6 +43,8 @@ def pixel_queries(queries: Any, num_frames: int | None, height: int, width: int)
     if array.dtype.kind not in "iuf":
         raise ValueError(f"{expected}, got dtype {array.dtype}")
     array = array.astype(np.float64)
+    if array.shape == (0,):  # an empty list: no queries, as an empty (0, 3) array
+        array = array.reshape(0, 3)
     if array.ndim != 2 or array.shape[-1] != 3:
         raise ValueError(f"{expected}, got shape {array.shape}")
     check_num_points(array.shape[0])
