@@ -179,7 +179,7 @@ def manifest_edits(draw: st.DrawFn) -> bytes:
 def read_manifest_folder(raw: bytes) -> None:
     """Loads an export folder holding ``raw`` as its manifest; then makes the loop's state."""
     from taptr.onnx.frame_loop import add_points, start_state
-    from taptr.onnx.run_memory import check_run_memory
+    from taptr.onnx.graph_memory import check_run_memory
     from taptr.onnx.video_tracker import support_pattern
 
     with tempfile.TemporaryDirectory() as tmp:

@@ -183,7 +183,7 @@ with open("/proc/self/clear_refs", "w") as stream:
     stream.write("5")  # the peak starts here: a forked child's would include its parent's
 import numpy as np
 from taptr.onnx import OnnxTracker
-from taptr.onnx.run_memory import estimate_run
+from taptr.onnx.graph_memory import estimate_run
 tracker = OnnxTracker(sys.argv[1], threads=1, support_points="none")
 queries = np.c_[np.zeros(1500), np.full(1500, 20.0), np.full(1500, 30.0)].astype(np.float32)
 tracker.track(np.zeros((3, 48, 64, 3), np.uint8), queries)

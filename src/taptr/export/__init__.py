@@ -38,12 +38,16 @@ _EXPORTS = {
     "compare": "taptr.export.verify",
     "compile_model": "taptr.export.compile",
     "export_v3": "taptr.export.v3_graphs",
+}
+
+_RUNNERS = {
     "V3Manifest": "taptr.onnx.v3_manifest",
     "OnnxTracker": "taptr.onnx.video_tracker",
     "OnnxOnlineTracker": "taptr.onnx.stream_tracker",
 }
+"""`taptr.onnx`'s names, importable from here as before (documented there)."""
 
 __all__ = sorted(_EXPORTS)
 
 
-__getattr__ = lazy_names(__name__, _EXPORTS)
+__getattr__ = lazy_names(__name__, {**_EXPORTS, **_RUNNERS})

@@ -6,7 +6,7 @@ still joins it, and is returned as soon as it is decoded (one frame of latency).
 are added (on frames not yet decoded) and removed at any time; who is who among them, and
 the support each brings or takes along, is `taptr.task.stream_points`'s bookkeeping, the
 same as the PyTorch stream's. All state lives in the `OnnxStream` the caller holds.
-Adding points checks the stream's estimated memory first (`taptr.onnx.run_memory`).
+Adding points checks the stream's estimated memory first (`taptr.onnx.graph_memory`).
 
 Shapes: F frames, N user points, N_t points the model tracks.
 """
@@ -26,7 +26,7 @@ from taptr.onnx.frame_loop import (
     keep_points,
     start_state,
 )
-from taptr.onnx.run_memory import check_run_memory
+from taptr.onnx.graph_memory import check_run_memory
 from taptr.onnx.video_tracker import OnnxTracker
 from taptr.task.pixel_queries import normalised, on_own_frames, pixel_queries, pixel_scale
 from taptr.task.pixel_queries import visible as visible_where

@@ -8,7 +8,7 @@ it not visible unless ``backward`` tracks them with a time-reversed pass. The fr
 is `taptr.onnx.frame_loop`; the graphs run in the engine named by ``engine``
 (`taptr.onnx.graph_engines`); streaming is `taptr.onnx.stream_tracker`. Before a video is
 tracked, its peak memory is estimated and a run over the budget is refused
-(`taptr.onnx.run_memory`), as `Predictor` does. Nothing here imports torch.
+(`taptr.onnx.graph_memory`), as `Predictor` does. Nothing here imports torch.
 
 Shapes: T frames, N points.
 """
@@ -23,7 +23,7 @@ import numpy as np
 from taptr.config import check_history_frames
 from taptr.onnx.frame_loop import track_points
 from taptr.onnx.graph_engines import StepGraphs, open_graphs
-from taptr.onnx.run_memory import check_run_memory, graphs_bytes
+from taptr.onnx.graph_memory import check_run_memory, graphs_bytes
 from taptr.onnx.v3_manifest import V3Manifest
 from taptr.query_checks import grid_points
 from taptr.task.both_ways import both_ways
