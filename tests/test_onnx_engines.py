@@ -101,3 +101,44 @@ def test_onnxruntime_presets(graphs):
             check_available("cuda")
         with pytest.raises(ValueError, match="pip install onnxruntime-gpu"):
             OnnxTracker(graphs, preset="cuda-graphs")
+
+
+def test_the_bound_step_replays_at_each_shape(tmp_path):
+    """`BoundStep`'s binding (CUDA graphs' on a GPU) on the CPU: one binding per shape."""
+    from taptr.onnx.ort_engine import BoundStep, open_sessions
+    from tests.fuzz_export import tiny_manifest, write_export
+
+    folder = write_export(tmp_path / "export")  # decode_step passes inputs through
+    session = open_sessions({"decode_step": str(folder / "decode_step.onnx")})["decode_step"]
+    step = BoundStep(session, device="cpu")
+    names = tiny_manifest().input_names("decode_step")
+    for points, value in ((3, 1.0), (3, 2.0), (5, 3.0), (3, 4.0)):
+        feed = _step_feed(names, points, value)
+        expected = session.run(None, feed)
+        for got, wanted in zip(step(feed), expected, strict=True):
+            np.testing.assert_array_equal(got, wanted)
+    assert len(step.bound) == 2  # two shapes, each bound once and replayed with new values
+
+
+def _step_feed(names: list[str], points: int, value: float) -> dict[str, np.ndarray]:
+    """decode_step's inputs at ``points`` points and 4 slots, floats filled with ``value``."""
+    shapes = {
+        "memory": (256, 32),
+        "frame": (),
+        "start_frames": (points,),
+        "initial_content": (points, 32),
+        "context": (points, 3, 3, 32),
+        "positions": (points, 4),
+        "visibility": (points, 3),
+        "history_content": (points, 4, 32),
+        "history_visibility": (points, 4),
+        "slot_frames": (4,),
+        "slot_held": (4,),
+    }
+    types = {
+        "frame": np.int64,
+        "start_frames": np.int64,
+        "slot_frames": np.int64,
+        "slot_held": bool,
+    }
+    return {n: np.full(shapes[n], value, types.get(n, np.float32)) for n in names}

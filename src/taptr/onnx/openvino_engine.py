@@ -97,8 +97,13 @@ class OpenVinoGraphs:
             self.requests[name] = compiled.create_infer_request()
 
     def _run(self, name: str, feed: dict[str, np.ndarray]) -> list[np.ndarray]:
-        """Graph ``name`` on named inputs; its outputs in order, as arrays of their own."""
-        results = self.requests[name].infer(feed)
+        """Graph ``name`` on named inputs; its outputs in order, as arrays of their own.
+
+        The inputs are read where they lie (the history alone is tens of megabytes at 800
+        points, copied on every frame otherwise); the outputs are copies, since the loop
+        keeps them past the next call.
+        """
+        results = self.requests[name].infer(feed, share_inputs=True)
         return [np.asarray(value) for value in results.values()]
 
     def encode(self, frames: np.ndarray) -> np.ndarray:

@@ -212,10 +212,13 @@ class BoundStep:
 
     Args:
         session: the ``decode_step`` session, made with ``enable_cuda_graph``.
+        device: where the buffers live (``cuda``; ``cpu`` for the tests, where the same
+            binding runs without graphs).
     """
 
-    def __init__(self, session: Any) -> None:
+    def __init__(self, session: Any, device: str = "cuda") -> None:
         self.session = session
+        self.device = device
         self.onnxruntime = onnxruntime_module()
         self.bound: dict[tuple[tuple[int, ...], ...], tuple[Any, dict[str, Any], Any]] = {}
 
@@ -225,10 +228,11 @@ class BoundStep:
         binding = self.session.io_binding()
         buffers = {}
         for name, value in inputs.items():
-            buffers[name] = ortvalue.ortvalue_from_numpy(np.ascontiguousarray(value), "cuda", 0)
+            array = np.ascontiguousarray(value)
+            buffers[name] = ortvalue.ortvalue_from_numpy(array, self.device, 0)
             binding.bind_ortvalue_input(name, buffers[name])
         for output in self.session.get_outputs():
-            binding.bind_output(output.name, "cuda")
+            binding.bind_output(output.name, self.device)
         options = self.onnxruntime.RunOptions()
         options.add_run_config_entry("gpu_graph_id", str(len(self.bound) + 1))
         self.session.run_with_iobinding(binding, options)  # allocates outputs, captures
@@ -246,4 +250,5 @@ class BoundStep:
             for name, value in inputs.items():
                 buffers[name].update_inplace(np.ascontiguousarray(value))
             self.session.run_with_iobinding(binding, options)
-        return tuple(value.numpy() for value in self.bound[key][0].get_outputs())
+        # copies: the bound outputs are overwritten by the next replay
+        return tuple(np.array(value.numpy()) for value in self.bound[key][0].get_outputs())
