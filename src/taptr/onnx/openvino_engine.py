@@ -8,7 +8,7 @@ the only way the loop calls it: OpenVINO's CPU plugin chooses its kernels once f
 shapes, 15 % faster than the same graph compiled with its frame count dynamic (a call
 with several frames runs them one by one). The points N and the history slots H stay
 dynamic: the plugin runs a compiled graph at any size, preparing each new shape on its
-first call (about one step more; docs/EXPORT.md), where a static step would be compiled
+first call (one to one and a half steps more; docs/EXPORT.md), where a static step would be compiled
 again, seconds, for every point count and every doubling of the history.
 
 Precision is asked, never left to the device: OpenVINO runs float32 graphs in bfloat16 on
