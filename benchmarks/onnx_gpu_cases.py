@@ -29,7 +29,6 @@ import onnxruntime as ort
 import torch
 
 from taptr.export.exporter import export_onnx_graph
-from taptr.export.sessions import session_options
 from taptr.export.v3_graphs import (
     dynamic_shapes,
     example_inputs,
@@ -38,7 +37,9 @@ from taptr.export.v3_graphs import (
     v3_manifest,
     v3_wrappers,
 )
-from taptr.export.v3_manifest import GRAPHS, V3Manifest
+from taptr.onnx.ort_engine import preset_providers, session_options
+from taptr.onnx.v3_manifest import V3Manifest
+from taptr.onnx.v3_tensors import GRAPHS
 
 SLOTS = 32
 """History slots of the timed step (24 frames held)."""
@@ -61,14 +62,16 @@ def export_half(model: torch.nn.Module, folder: Path) -> Path:
 
 
 def providers(kind: str, half: bool, cache: str) -> list[Any]:
-    """onnxruntime providers of a variant kind (``cpu``, ``cuda``, ``cuda_graph``, ``tensorrt``)."""
-    if kind == "cpu":
-        return ["CPUExecutionProvider"]
-    cuda = ("CUDAExecutionProvider", {"enable_cuda_graph": "1" if kind == "cuda_graph" else "0"})
-    if kind != "tensorrt":
-        return [cuda]
-    options = {"trt_fp16_enable": "1" if half else "0", "trt_engine_cache_enable": "1"}
-    return [("TensorrtExecutionProvider", {**options, "trt_engine_cache_path": cache}), cuda]
+    """onnxruntime providers of a variant kind: the engine's presets (`taptr.onnx.ort_engine`).
+
+    ``kind``: ``cpu``, ``cuda``, ``cuda_graph`` or ``tensorrt``; TensorRT builds float16
+    engines for the float16 graphs.
+    """
+    chosen = preset_providers(kind.replace("cuda_graph", "cuda-graphs"), cache)
+    if kind == "tensorrt" and half:
+        name, options = chosen[0]
+        chosen[0] = (name, {**options, "trt_fp16_enable": "1"})
+    return chosen
 
 
 def step_feed(sessions: dict, manifest: V3Manifest, points: int, half: bool) -> dict:

@@ -1,20 +1,24 @@
 """TAPTRv3 exported to ONNX against PyTorch on this CPU, side by side in one process.
 
-Per point count, in float32, with PyTorch and onnxruntime on the same threads:
+Per point count, in float32, with PyTorch and each engine (``--engines``: onnxruntime and
+OpenVINO, `taptr.onnx.graph_engines`) on the same threads:
 
-- the per-frame decoder step, frames encoded beforehand (the same memory for all three):
+- the per-frame decoder step, frames encoded beforehand (the same memory for all):
   PyTorch eager (the predictor's step), PyTorch captured (Inductor, compiled once before
   timing: `taptr.runtime.step_capture`), and the exported ``decode_step`` driven by the
-  torch-free loop (`taptr.export.v3_loop`);
+  torch-free loop (`taptr.onnx.frame_loop`) in each engine (``step_onnx`` is
+  onnxruntime's, ``step_openvino`` OpenVINO's);
 - whole videos, encoding included: ``Predictor.track`` (capture off, which is what
-  ``auto`` picks for a 24-frame video here) against the torch-free ``OnnxTracker.track``,
-  both with the model's support points.
+  ``auto`` picks for a 24-frame video here) against the torch-free ``OnnxTracker.track``
+  in each engine (``onnx_track``, ``openvino_track``), all with the model's support
+  points.
 
 Cases run in turns (one of each, then again) and the best of the turns is kept: on a
 shared machine only times measured together compare. Weights are the architecture's,
 untrained (seeded): they set the work, not the tracks. Prints one JSON object.
 
     python benchmarks/onnx_v3_cpu.py                       # TAPTRv3-R18, 384 × 512, 24 frames
+    python benchmarks/onnx_v3_cpu.py --engines openvino      # one engine
     python benchmarks/onnx_v3_cpu.py --preset tiny-v3 --size 48 64 --frames 6 --points 8 \\
         --turns 1 --backend eager                         # a quick check of the script
 """
@@ -27,6 +31,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable
+from importlib.util import find_spec
 from typing import Any
 
 import numpy as np
@@ -35,13 +40,13 @@ import torch
 from taptr.api.predictor import Predictor
 from taptr.apps.benchmark import machine
 from taptr.export.v3_graphs import export_v3
-from taptr.export.v3_loop import add_points, decode_frame, start_state
-from taptr.export.v3_sessions import OnnxGraphs
-from taptr.export.v3_tracker import OnnxTracker
 from taptr.model.build import build_model
 from taptr.model.taptr import normalize_frames
 from taptr.model.trajectory import QuerySet
 from taptr.model.v3.per_frame import run_frames
+from taptr.onnx.frame_loop import add_points, decode_frame, start_state
+from taptr.onnx.graph_engines import StepGraphs, open_graphs
+from taptr.onnx.video_tracker import OnnxTracker
 from taptr.runtime import step_capture
 from taptr.runtime.frames import PrecomputedFrames
 from taptr.runtime.step_capture import StepCapture
@@ -67,7 +72,7 @@ def step_torch(model, memory, xy, capture: str) -> tuple[Callable[[], Any], str]
     return run, f"step_{'captured' if capture == 'on' else 'eager'}"
 
 
-def step_onnx(graphs: OnnxGraphs, memory: np.ndarray, xy: np.ndarray) -> Callable[[], Any]:
+def step_onnx(graphs: StepGraphs, memory: np.ndarray, xy: np.ndarray) -> Callable[[], Any]:
     """The exported step through the torch-free loop over the same memory; positions."""
 
     def run() -> np.ndarray:
@@ -79,12 +84,18 @@ def step_onnx(graphs: OnnxGraphs, memory: np.ndarray, xy: np.ndarray) -> Callabl
     return run
 
 
-def whole_video(predictor: Predictor, tracker: OnnxTracker, video, queries) -> dict[str, Any]:
-    """``Predictor.track`` and ``OnnxTracker.track`` on one video; tracks (T, N, 2)."""
-    return {
-        "predictor_track": lambda: predictor.track(video, queries).tracks[0].numpy(),
-        "onnx_track": lambda: tracker.track(video, queries).tracks,
-    }
+PREFIXES = {"onnxruntime": "onnx", "openvino": "openvino"}
+"""How each engine's cases are named (onnxruntime's keep the names of earlier reports)."""
+
+
+def whole_video(predictor: Predictor, trackers: dict, video, queries) -> dict[str, Any]:
+    """``Predictor.track`` and each engine's ``OnnxTracker.track`` on one video; tracks."""
+    cases = {"predictor_track": lambda: predictor.track(video, queries).tracks[0].numpy()}
+    for engine, tracker in trackers.items():
+        cases[f"{PREFIXES[engine]}_track"] = lambda tracker=tracker: (
+            tracker.track(video, queries).tracks
+        )
+    return cases
 
 
 def in_turns(cases: dict[str, Callable[[], Any]], turns: int) -> dict[str, Any]:
@@ -99,30 +110,41 @@ def in_turns(cases: dict[str, Callable[[], Any]], turns: int) -> dict[str, Any]:
     return {"seconds": best, "outputs": outputs}
 
 
-def one_count(args, model, graphs, tracker, predictor, memory, video, points) -> dict:
-    """Every case at one point count: seconds per frame, ratios, agreement on frame 1."""
+def one_count(args, model, engines, predictor, memory, video, points) -> dict:
+    """Every case at one point count: seconds per frame, ratios, agreement on frame 1.
+
+    ``engines``: engine name → (its graphs, its tracker).
+    """
     height, width = args.size
     xy = np.random.default_rng(points).uniform(0.05, 0.95, (points, 2)).astype(np.float32)
-    cases = {"step_onnx": step_onnx(graphs, memory.memory[0].numpy(), xy)}
+    cases = {
+        f"step_{PREFIXES[name]}": step_onnx(graphs, memory.memory[0].numpy(), xy)
+        for name, (graphs, _) in engines.items()
+    }
     for capture in ["off"] + ([] if args.skip_capture else ["on"]):
         run, name = step_torch(model, memory, xy, capture)
         cases[name] = run
     queries = np.concatenate([np.zeros((points, 1)), xy * [width - 1, height - 1]], 1)
-    cases.update(whole_video(predictor, tracker, video, queries.astype(np.float32)))
+    trackers = {name: tracker for name, (_, tracker) in engines.items()}
+    cases.update(whole_video(predictor, trackers, video, queries.astype(np.float32)))
     measured = in_turns(cases, args.turns)
     per_frame = {name: s / args.frames for name, s in measured["seconds"].items()}
     out = measured["outputs"]
-    return {
-        "seconds_per_frame": per_frame,
-        "onnx_step_speed_vs_eager": per_frame["step_eager"] / per_frame["step_onnx"],
-        "onnx_track_time_vs_predictor": per_frame["onnx_track"] / per_frame["predictor_track"],
-        "frame_1_max_position_difference": float(
-            np.abs(out["step_onnx"][1] - out["step_eager"][1]).max()
-        ),
-        "track_frame_1_max_pixel_difference": float(
-            np.abs(out["onnx_track"][1] - out["predictor_track"][1]).max()
-        ),
-    }
+    report: dict[str, Any] = {"seconds_per_frame": per_frame}
+    for name in engines:
+        prefix = PREFIXES[name]
+        step, track = f"step_{prefix}", f"{prefix}_track"
+        report[f"{prefix}_step_speed_vs_eager"] = per_frame["step_eager"] / per_frame[step]
+        report[f"{prefix}_track_time_vs_predictor"] = (
+            per_frame[track] / per_frame["predictor_track"]
+        )
+        report[f"{prefix}_frame_1_max_position_difference"] = float(
+            np.abs(out[step][1] - out["step_eager"][1]).max()
+        )
+        report[f"{prefix}_track_frame_1_max_pixel_difference"] = float(
+            np.abs(out[track][1] - out["predictor_track"][1]).max()
+        )
+    return report
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -138,6 +160,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--export", default=None, help="an export folder of the same model")
     parser.add_argument("--skip-capture", action="store_true", help="no captured step")
     parser.add_argument("--backend", default="inductor", help="the capture's compile backend")
+    parser.add_argument(
+        "--engines",
+        nargs="+",
+        default=["onnxruntime", "openvino"] if find_spec("openvino") else ["onnxruntime"],
+        choices=list(PREFIXES),
+        help="the engines that run the export (default: both where OpenVINO is installed)",
+    )
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     step_capture.BACKEND = args.backend
@@ -152,6 +181,7 @@ def main(argv: list[str] | None = None) -> int:
     report = {
         "machine": machine(),
         "onnxruntime": __import__("onnxruntime").__version__,
+        "openvino": __import__("openvino").__version__ if "openvino" in args.engines else None,
         "command": " ".join(["python", "benchmarks/onnx_v3_cpu.py", *(argv or sys.argv[1:])]),
         "threads": args.threads,
         "export_seconds": exported if args.export is None else None,
@@ -163,15 +193,17 @@ def main(argv: list[str] | None = None) -> int:
 
 def run_cases(args: argparse.Namespace, model: torch.nn.Module, folder: str) -> dict:
     """Every point count's cases over the export in ``folder``."""
-    graphs = OnnxGraphs(folder, threads=args.threads)
-    tracker = OnnxTracker(graphs=graphs)
+    engines = {}
+    for name in args.engines:
+        graphs = open_graphs(folder, name, threads=args.threads)
+        engines[name] = (graphs, OnnxTracker(graphs=graphs))
     predictor = Predictor(model, device="cpu", capture="off")
     video = np.random.default_rng(0).integers(0, 256, (args.frames, *args.size, 3), np.uint8)
     frames = torch.from_numpy(video).permute(0, 3, 1, 2).float() / 255
     with torch.no_grad():
         memory = model.encode(normalize_frames(frames)[None])
     return {
-        str(points): one_count(args, model, graphs, tracker, predictor, memory, video, points)
+        str(points): one_count(args, model, engines, predictor, memory, video, points)
         for points in args.points
     }
 

@@ -4,10 +4,11 @@
     python examples/online_camera_onnx.py --export exported/    # camera 0; the sample clip if none
     python examples/online_camera_onnx.py --export exported/ --video clip.mp4 --grid 6 --refresh 24
 
-The exported graphs run in onnxruntime through the torch-free loop
-(`taptr.export.OnnxOnlineTracker`, numpy only): each frame is decoded once the next one
-has arrived, so its tracks come back one frame behind the newest. The time from a frame's
-arrival to the return of the step is logged for every frame, with a summary at the end.
+The exported graphs run in onnxruntime (or OpenVINO: ``--engine openvino``) through the
+torch-free loop (`taptr.onnx.OnnxOnlineTracker`, numpy only): each frame is decoded once
+the next one has arrived, so its tracks come back one frame behind the newest. The time
+from a frame's arrival to the return of the step is logged for every frame, with a summary
+at the end.
 With ``--refresh K``, every K frames the points that are not visible any more are removed
 and a fresh grid is added on the newest frame, as in ``online_camera.py``, whose camera
 and drawing code this script shares. Nothing here imports torch.
@@ -40,7 +41,10 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--grid", type=int, default=5, help="N×N points per grid (default 5)")
     parser.add_argument("--refresh", type=int, default=0, help="renew lost points every K frames")
     parser.add_argument("--max-frames", type=int, default=300, help="stop after this many frames")
-    parser.add_argument("--threads", type=int, default=None, help="onnxruntime's threads")
+    parser.add_argument("--threads", type=int, default=None, help="the engine's threads")
+    parser.add_argument(
+        "--engine", default="onnxruntime", choices=("onnxruntime", "openvino"), help="what runs it"
+    )
     parser.add_argument("--out", default="outputs/online_onnx.mp4", help="drawn stream (mp4)")
     parser.add_argument("--show", action="store_true", help="show the stream in a window")
     return parser.parse_args(argv)
@@ -113,10 +117,11 @@ def run(args: argparse.Namespace, scratch: Path) -> int:
     """`main` with a scratch folder for the sample clip (when there is no camera)."""
     import cv2
 
-    from taptr.export import OnnxOnlineTracker, OnnxTracker
+    from taptr.onnx import OnnxOnlineTracker, OnnxTracker
 
     camera = camera_code()
-    online = OnnxOnlineTracker(OnnxTracker(args.export, threads=args.threads))
+    tracker = OnnxTracker(args.export, engine=args.engine, threads=args.threads)
+    online = OnnxOnlineTracker(tracker)
     capture = camera.open_stream(args, scratch)
     draw = Drawer(args, capture.get(cv2.CAP_PROP_FPS) or 24.0)
     waiting: dict[int, np.ndarray] = {}  # frames whose tracks are not back yet

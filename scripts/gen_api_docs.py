@@ -77,6 +77,18 @@ SECTIONS = {
     ],
     "Training": ["taptr.train.config", "taptr.train.loop"],
     "Export": ["taptr.export"],
+    "Exported graphs without torch": [
+        "taptr.onnx",
+        "taptr.onnx.graph_engines",
+        "taptr.onnx.ort_engine",
+        "taptr.onnx.openvino_engine",
+        "taptr.onnx.v3_manifest",
+    ],
+    "What a tracker does (no torch)": [
+        "taptr.task.support_schemes",
+        "taptr.task.stream_points",
+        "taptr.task.results",
+    ],
     "Corpora": [
         "taptr.corpus.job",
         "taptr.corpus.results",

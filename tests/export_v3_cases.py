@@ -33,7 +33,7 @@ def randomised_v3(preset: str = "tiny-v3", seed: int = 0, **changes) -> TAPTRv3:
 
 
 class EagerGraphs:
-    """`taptr.export.v3_loop.V3Graphs` over the PyTorch wrappers, before any export."""
+    """`taptr.onnx.graph_engines.StepGraphs` over the PyTorch wrappers, before any export."""
 
     def __init__(
         self,

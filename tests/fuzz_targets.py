@@ -10,7 +10,8 @@ silent wrong output. `tests/test_fuzz.py` asserts that nothing is a traceback or
 lying sizes, logical views, special files, resource estimates) are in `tests.fuzz_hostile`;
 its `memory_bound` oracle (peak RSS growth per input) applies to every category. Issue 45's
 (kept capture timings, downloads from a misbehaving Drive) are in `tests.fuzz_downloads`;
-issue 51's (a corpus's output folder tampered with) in `tests.fuzz_corpus`.
+issue 51's (a corpus's output folder tampered with) in `tests.fuzz_corpus`, and
+(tampered export folders: manifests and graphs) in `tests.fuzz_export`.
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ import torch
 from hypothesis import strategies as st
 
 from taptr.io.safe_pickle import ALLOWED
-from tests import bombs, fuzz_corpus, fuzz_downloads, fuzz_hostile, fuzz_options
+from tests import bombs, fuzz_corpus, fuzz_downloads, fuzz_export, fuzz_hostile, fuzz_options
 from tests.fuzz_hostile import SilentError, memory_bound
 
 CLEAN = (ValueError, FileNotFoundError)
@@ -506,5 +507,6 @@ CATEGORIES: dict[str, tuple[Any, Callable[[Any], Any]]] = {
     **fuzz_options.CATEGORIES,
     **fuzz_downloads.CATEGORIES,
     **fuzz_corpus.CATEGORIES,
+    **fuzz_export.CATEGORIES,
 }
 """Every fuzzed input category: (strategy, target)."""

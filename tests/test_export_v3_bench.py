@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from importlib.util import find_spec
 from pathlib import Path
 
 import pytest
@@ -33,14 +34,20 @@ def test_cpu_benchmark_times_every_case_side_by_side(tmp_path_factory):
     shared = tiny_export(tmp_path_factory.getbasetemp())
     arguments = ["--checkpoint", str(shared / "tiny_v3.pth"), "--export", str(shared / "graphs")]
     arguments += ["--size", "48", "64", "--frames", "6", "--points", "8", "--turns", "1"]
+    engines = ["onnxruntime", "openvino"] if find_spec("openvino") else ["onnxruntime"]
+    arguments += ["--engines", *engines]
     report = _run("onnx_v3_cpu.py", *arguments, "--threads", "1", "--skip-capture")
     assert report["machine"]["cpu"] and report["threads"] == 1
     case = report["points"]["8"]
-    expected = {"step_onnx", "step_eager", "predictor_track", "onnx_track"}
+    prefixes = ["onnx", "openvino"][: len(engines)]
+    expected = {"step_eager", "predictor_track"}
+    expected |= {f"step_{p}" for p in prefixes} | {f"{p}_track" for p in prefixes}
     assert set(case["seconds_per_frame"]) == expected
-    assert case["onnx_step_speed_vs_eager"] > 0 and case["onnx_track_time_vs_predictor"] > 0
-    assert case["frame_1_max_position_difference"] < 1e-4  # the same model both ways
-    assert case["track_frame_1_max_pixel_difference"] < 1e-2
+    for prefix in prefixes:
+        assert case[f"{prefix}_step_speed_vs_eager"] > 0
+        assert case[f"{prefix}_track_time_vs_predictor"] > 0
+        assert case[f"{prefix}_frame_1_max_position_difference"] < 1e-4  # the same model
+        assert case[f"{prefix}_track_frame_1_max_pixel_difference"] < 1e-2
 
 
 def test_gpu_cases_run_on_the_cpu_provider_without_a_gpu(tmp_path_factory):

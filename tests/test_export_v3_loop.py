@@ -15,15 +15,15 @@ import torch
 from taptr.api.online import OnlineTracker
 from taptr.api.predictor import Predictor
 from taptr.api.resize import resize_frames as torch_resize
-from taptr.export.v3_history import RingHistory
-from taptr.export.v3_loop import track_points
-from taptr.export.v3_online import FrameCountError, OnnxOnlineTracker
-from taptr.export.v3_resize import resize_frames
-from taptr.export.v3_tracker import OnnxTracker
 from taptr.model.taptr import normalize_frames
 from taptr.model.trajectory import QuerySet
 from taptr.model.v3.per_frame import run_frames
+from taptr.onnx.frame_loop import track_points
+from taptr.onnx.ring_history import RingHistory
+from taptr.onnx.stream_tracker import FrameCountError, OnnxOnlineTracker
+from taptr.onnx.video_tracker import OnnxTracker
 from taptr.runtime.frames import EncodedFrames
+from taptr.task.resizing import resize_frames
 from tests.export_v3_cases import EagerGraphs, randomised_v3
 
 
@@ -245,7 +245,7 @@ def test_command_refuses_torchscript_and_a_history_of_one(model, tmp_path, capsy
 
 def test_manifest_round_trip_and_the_other_model_refused(model, tmp_path):
     from taptr.export.manifest import ExportManifest
-    from taptr.export.v3_manifest import V3Manifest
+    from taptr.onnx.v3_manifest import V3Manifest
 
     manifest = EagerGraphs(model, history_frames=16).manifest
     manifest.save(tmp_path)

@@ -18,11 +18,12 @@ import pytest
 
 from taptr.api.online import OnlineTracker
 from taptr.api.predictor import Predictor
-from taptr.export.v3_manifest import GRAPHS, V3Manifest
-from taptr.export.v3_online import OnnxOnlineTracker
-from taptr.export.v3_sessions import OnnxGraphs
-from taptr.export.v3_tracker import OnnxTracker
 from taptr.model.v3.context_attention import ContextAwareDeformableAttention
+from taptr.onnx.ort_engine import OnnxRuntimeGraphs as OnnxGraphs
+from taptr.onnx.stream_tracker import OnnxOnlineTracker
+from taptr.onnx.v3_manifest import V3Manifest
+from taptr.onnx.v3_tensors import GRAPHS
+from taptr.onnx.video_tracker import OnnxTracker
 from tests.export_v3_cases import HISTORY, EagerGraphs, randomised_v3, tiny_export
 from tests.test_export_v3_loop import _stream_run
 

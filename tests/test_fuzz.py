@@ -18,6 +18,7 @@ from hypothesis import given, settings
 
 from tests import fuzz_corpus as corpus
 from tests import fuzz_downloads as downloads
+from tests import fuzz_export as export
 from tests import fuzz_hostile as hostile
 from tests import fuzz_options as options
 from tests import fuzz_targets as targets
@@ -147,6 +148,24 @@ def test_fuzz_corpus_tampered_marker_and_links(case):
 def test_fuzz_downloads_from_a_misbehaving_drive(case):
     pytest.importorskip("gdown")
     _run(downloads.download_from_misbehaving_drive, case)
+
+
+@given(export.manifest_edits())
+def test_fuzz_export_manifest(data):
+    _run(export.read_manifest_folder, data)
+
+
+@given(export.huge_manifests)
+def test_fuzz_export_manifest_far_too_large(size):
+    _run(export.read_huge_manifest, size)
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs POSIX special files")
+@given(export.tampered_graphs)
+def test_fuzz_export_graph_files(value):
+    pytest.importorskip("onnx")
+    pytest.importorskip("onnxruntime")
+    _run(export.open_tampered, value)
 
 
 def test_every_category_is_fuzzed():

@@ -1,66 +1,57 @@
-"""Tracking both ways in time: a forward pass, a time-reversed pass, fused at the query frames.
-
-A forward-in-time tracker only follows a point to its query frame and later ones. The frames
-before come from a second pass over the video read backwards, in which each query frame t is
-frame T − 1 − t; flipped back, that pass gives the frames before each query frame, and the
-forward pass the query frame and after (TAPTRv2-SPEC.md §4.4, TAPVID-PROTOCOL.md §1.7).
+"""Tracking both ways in time with torch passes: `taptr.task.both_ways`'s rule on tensors.
 
 `Predictor.track(..., backward=True)` and the evaluation's ``strided`` protocol for
-forward-only trackers (`taptr.eval.trackers.track_both_ways`) both run this one rule.
+forward-only trackers (`taptr.eval.trackers.track_both_ways`) hand their passes here; the
+fusion itself (which frames come from which pass) is written once, in numpy, in
+`taptr.task.both_ways`, and the tensors cross over without copies (they are on the host).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 
+import numpy as np
 import torch
 from torch import Tensor
 
-PassFunction = Callable[[Tensor, bool], tuple[Tensor, Tensor]]
-"""One forward-in-time pass: ``(queries (N, 3) (t, x, y), reverse) -> (tracks, values)``.
+from taptr.task import both_ways as rule
 
-With ``reverse`` the pass reads the video backwards (its frame t is frame T − 1 − t), the
-queries' t are already given in that reversed time, and its outputs are in reversed time:
-tracks (T, N, 2) and per-point values (T, N) (visibility logits, or visible flags)."""
+PassFunction = Callable[[Tensor, bool], tuple[Tensor, Tensor]]
+"""One forward-in-time pass (`taptr.task.both_ways.PassFunction`) on host tensors."""
 
 
 def query_frames(queries: Tensor) -> Tensor:
     """(N,) int64 query frame of (N, 3) (t, x, y) queries, rounded half to even (as numpy)."""
-    return queries[:, 0].round().long()
+    return torch.from_numpy(rule.query_frames(queries.detach().cpu().numpy()))
 
 
 def needs_backward(queries: Tensor) -> bool:
     """Whether any query has frames before it (a reversed pass would change nothing else)."""
-    return bool((query_frames(queries) > 0).any())
+    return rule.needs_backward(queries.detach().cpu().numpy())
 
 
 def reversed_queries(queries: Tensor, num_frames: int) -> Tensor:
     """(N, 3) (t, x, y) queries of the time-reversed video: t → T − 1 − t, x and y kept."""
-    flipped = queries.clone()
-    flipped[:, 0] = num_frames - 1 - queries[:, 0]
-    return flipped
+    return torch.from_numpy(rule.reversed_queries(queries.detach().cpu().numpy(), num_frames))
 
 
 def track_both_ways(track: PassFunction, queries: Tensor, num_frames: int) -> tuple[Tensor, Tensor]:
-    """Forward pass plus time-reversed pass, fused at each query frame.
-
-    The reversed pass runs with the same query set (points that attend to each other see
-    the same points both ways); it is skipped when no query has frames before it.
+    """Forward pass plus time-reversed pass, fused at each query frame (`taptr.task.both_ways`).
 
     Args:
-        track: one pass (see `PassFunction`).
-        queries: (N, 3) (t, x, y): frame index and pixels.
+        track: one pass (see `PassFunction`); its outputs on the host.
+        queries: (N, 3) (t, x, y): frame index and pixels, on the host.
         num_frames: T, frames in the video.
 
     Returns:
-        tracks (T, N, 2) and values (T, N) on every frame: from the reversed pass (flipped
-        back) before each point's query frame, from the forward pass on it and after.
+        tracks (T, N, 2) and values (T, N) on every frame.
     """
-    tracks, values = track(queries, False)
-    if not needs_backward(queries):
-        return tracks, values
-    back_tracks, back_values = track(reversed_queries(queries, num_frames), True)
-    before = torch.arange(num_frames)[:, None] < query_frames(queries)[None]  # (T, N)
-    tracks = torch.where(before[..., None], back_tracks.flip(0), tracks)
-    values = torch.where(before, back_values.flip(0), values)
-    return tracks, values
+
+    def one_pass(pass_queries: np.ndarray, reverse: bool) -> tuple[np.ndarray, np.ndarray]:
+        tracks, values = track(torch.from_numpy(pass_queries), reverse)
+        return tracks.numpy(), values.numpy()
+
+    tracks, values = rule.both_ways(one_pass, queries.numpy(), num_frames)
+    return torch.from_numpy(np.ascontiguousarray(tracks)), torch.from_numpy(
+        np.ascontiguousarray(values)
+    )

@@ -13,10 +13,10 @@ import torch
 from torch import Tensor
 
 # re-exported: the point limit is part of this module's interface
-from taptr.query_checks import MAX_POINTS_ENV as MAX_POINTS_ENV
-from taptr.query_checks import check_num_points as check_num_points
-from taptr.query_checks import check_query_values, grid_points
-from taptr.query_checks import max_points as max_points
+from taptr.task.query_checks import MAX_POINTS_ENV as MAX_POINTS_ENV
+from taptr.task.query_checks import check_num_points as check_num_points
+from taptr.task.query_checks import check_query_values, grid_points
+from taptr.task.query_checks import max_points as max_points
 
 RESULT_BYTES_PER_POINT_FRAME = 16
 """Bytes of the result per point and frame: float32 (x, y), logit and visibility (padded)."""
@@ -80,6 +80,8 @@ def query_tensor(
             points; or results that would not fit in the available memory.
     """
     q = _real_tensor(queries).detach().to("cpu", torch.float64)
+    if q.shape == (0,):  # an empty list: no queries
+        q = q.reshape(0, 3)
     if q.dim() == 2:
         q = q[None].expand(batch, -1, -1)
     if q.dim() != 3 or q.shape[-1] != 3 or q.shape[0] != batch:
@@ -96,7 +98,7 @@ def query_tensor(
 def grid_queries(
     grid_size: int, frame: int, height: int, width: int, *, name: str = "grid_size"
 ) -> Tensor:
-    """`taptr.query_checks.grid_points` as a tensor, (N, 3) float32 (t, x, y)."""
+    """`taptr.task.query_checks.grid_points` as a tensor, (N, 3) float32 (t, x, y)."""
     return torch.from_numpy(grid_points(grid_size, frame, height, width, name=name))
 
 

@@ -35,31 +35,15 @@ from torch import Tensor
 from taptr.api.inputs import query_tensor, video_tensor
 from taptr.api.predictor import Predictor
 from taptr.api.queries import model_queries, on_own_frames
-from taptr.api.support import LOCAL_OFFSETS, local_points
+from taptr.api.support import as_query_set, pattern_for
 from taptr.geometry import normalized_to_pixels
 from taptr.model.trajectory import QuerySet, TrackerState
 from taptr.runtime.engines import Engine
 from taptr.runtime.frame_engine import FrameStream
 from taptr.runtime.frames import StreamFrames
-
-
-class FrameCountError(ValueError):
-    """A stream brought more or fewer frames than `OnlineTracker.start` was told.
-
-    Attributes:
-        seen: frames received (with the chunk that went past the count, when too many).
-        declared: frames `OnlineTracker.start` was told.
-    """
-
-    def __init__(self, message: str, *, seen: int, declared: int) -> None:
-        super().__init__(message)
-        self.seen = seen
-        self.declared = declared
-
-    @property
-    def short(self) -> bool:
-        """Whether the stream ended before the declared count (a truncated file)."""
-        return self.seen < self.declared
+from taptr.task.results import FrameCountError as FrameCountError  # re-exported: public
+from taptr.task.results import StreamUpdate as StreamUpdate  # re-exported: public
+from taptr.task.stream_points import StreamPoints
 
 
 @dataclass
@@ -75,15 +59,10 @@ class StreamState:
         last_decoded: last frame of the last decoded window (−1 before the first).
         encoded: the frames still needed (prepared ones waiting for their first window and
             the encoded window the frame cache keeps); ``len`` counts them.
-        queries: (N, 3) float32 (t, x, y) pixels of the current points.
-        point_ids: identifier of each current point, in order.
-        next_id: identifier of the next point added.
-        is_context: (N_t,) bool over the tracker's points: True for context points.
-        context_added: whether the context points have been drawn.
-        support: the support scheme chosen then (`Predictor.support_scheme`); with
-            ``"local_and_grid"``, points added later bring their own local points.
-        support_of: (N_t,) int64 over the tracker's points: the identifier of the user
-            point a local support point surrounds (it leaves with it), else −1.
+        points: the user's points, their identifiers and the support around them
+            (`taptr.task.stream_points`); ``queries``, ``point_ids``, ``is_context``,
+            ``support`` and ``support_of`` read it.
+        context_added: whether the context or support points have been drawn.
     """
 
     tracker: TrackerState | FrameStream
@@ -93,32 +72,34 @@ class StreamState:
     num_seen: int = 0
     emitted: int = 0
     last_decoded: int = -1
-    queries: Tensor = field(default_factory=lambda: torch.zeros(0, 3))
-    point_ids: list[int] = field(default_factory=list)
-    next_id: int = 0
-    is_context: Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.bool))
+    points: StreamPoints = field(default_factory=StreamPoints)
     context_added: bool = False
-    support: str | None = None
-    support_of: Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.long))
 
+    @property
+    def queries(self) -> Tensor:
+        """(N, 3) float32 (t, x, y) pixels of the current user points."""
+        return torch.from_numpy(self.points.queries)
 
-@dataclass
-class StreamUpdate:
-    """Tracks of the frames that became final.
+    @property
+    def point_ids(self) -> list[int]:
+        """Identifier of each current user point, in order."""
+        return self.points.point_ids
 
-    Attributes:
-        first_frame: index of the first returned frame.
-        tracks: (F, N, 2) float32 (x, y) pixels of the input frames.
-        visibility: (F, N) bool.
-        visibility_logits: (F, N); −inf before a point's query frame.
-        point_ids: identifier of each of the N points.
-    """
+    @property
+    def is_context(self) -> Tensor:
+        """(N_t,) bool over the tracker's points: True for context or support points."""
+        return torch.from_numpy(self.points.is_support)
 
-    first_frame: int
-    tracks: Tensor
-    visibility: Tensor
-    visibility_logits: Tensor
-    point_ids: list[int]
+    @property
+    def support_of(self) -> Tensor:
+        """(N_t,) int64: the user point a local support point surrounds, else −1."""
+        return torch.from_numpy(self.points.support_of)
+
+    @property
+    def support(self) -> str | None:
+        """The support scheme's name once drawn (`Predictor.support_scheme`)."""
+        scheme = self.points.scheme
+        return None if scheme is None else scheme.name
 
 
 class OnlineTracker:
@@ -164,34 +145,25 @@ class OnlineTracker:
             raise ValueError(f"query frames must come after frame {state.last_decoded}")
         points = model_queries(new, height, width, self.runner.device, self.runner.dtype)
         self.engine.add_points(state.tracker, points)
-        ids = list(range(state.next_id, state.next_id + new.shape[0]))
-        state.next_id += new.shape[0]
-        state.point_ids += ids
-        state.queries = torch.cat((state.queries, new))
-        state.is_context = torch.cat((state.is_context, torch.zeros(len(ids), dtype=torch.bool)))
-        state.support_of = torch.cat((state.support_of, torch.full((len(ids),), -1)))
-        if state.support == "local_and_grid":  # the support of points added later
-            parents = torch.tensor(ids).repeat_interleave(len(LOCAL_OFFSETS))
-            self._add_support_points(state, local_points(points), parents)
+        ids = state.points.add_queries(new.numpy())
+        starts = points.start_frames[0].cpu().numpy()
+        support = state.points.support_added(
+            ids, starts, points.positions[0].cpu().numpy(), pattern_for(points)
+        )
+        if len(support.parents):  # the support of points added after it was drawn
+            self._add_support_points(state, as_query_set(support, points), support.parents)
         return ids
 
     def remove_queries(self, state: StreamState, ids: list[int]) -> None:
-        """Stops tracking the given points (unknown identifiers are an error)."""
-        removed = set(ids)  # once: a set per point made removing half of 100,000 quadratic
-        unknown = sorted(removed.difference(state.point_ids))
-        if unknown:
-            more = f", ... ({len(unknown):,} in all)" if len(unknown) > 10 else ""
-            raise ValueError(f"unknown point ids: {unknown[:10]}{more}")
-        keep = torch.tensor([pid not in removed for pid in state.point_ids], dtype=torch.bool)
-        # context and grid points stay; local support points leave with their point
-        gone = torch.tensor(sorted(removed), dtype=torch.long)
-        keep_tracked = state.is_context & ~torch.isin(state.support_of, gone)
-        keep_tracked[~state.is_context] = keep
-        self.engine.keep_points(state.tracker, keep_tracked.to(self.runner.device))
-        state.is_context = state.is_context[keep_tracked]
-        state.support_of = state.support_of[keep_tracked]
-        state.queries = state.queries[keep]
-        state.point_ids = [pid for pid in state.point_ids if pid not in removed]
+        """Stops tracking the given points and the support around them.
+
+        Context and grid points stay; local support points leave with their point.
+
+        Raises:
+            ValueError: unknown identifiers.
+        """
+        keep = torch.from_numpy(state.points.remove(ids))
+        self.engine.keep_points(state.tracker, keep.to(self.runner.device))
 
     @torch.no_grad()
     def step(self, state: StreamState, frames: np.ndarray | Tensor) -> StreamUpdate:
@@ -245,30 +217,29 @@ class OnlineTracker:
         return video_tensor(frames[None])[0]
 
     def _add_context(self, state: StreamState) -> None:
-        """Draws the context points from the points known now (before the first window)."""
+        """Draws the context or support points from the points known now (first unit)."""
         state.context_added = True
         known = self.engine.queries(state.tracker)
-        state.support = self.predictor.support_scheme(known.start_frames.shape[1])
-        padded = self.predictor.with_support(known, state.num_frames, state.support)
-        count = padded.start_frames.shape[1] - known.start_frames.shape[1]
-        if not count:
+        scheme = self.predictor.chosen_support(known.start_frames.shape[1])
+        pattern = pattern_for(known, self.predictor.context_points)
+        xy = known.positions[0].cpu().numpy()
+        support = state.points.draw_support(scheme, pattern, xy, caller_draws=True)
+        if len(support.parents):
+            self._add_support_points(state, as_query_set(support, known), support.parents)
+        if not scheme.drawn:
             return
-        parents = torch.full((count,), -1)
-        if state.support == "local_and_grid":  # 63 local points per known point, in order
-            known_ids = torch.tensor(state.point_ids, dtype=torch.long)
-            local = known_ids.repeat_interleave(len(LOCAL_OFFSETS))
-            parents[: len(local)] = local
-        self._add_support_points(state, QuerySet(*(q[:, -count:] for q in padded)), parents)
+        padded = self.predictor.with_support(known, state.num_frames, scheme.name)
+        count = padded.start_frames.shape[1] - known.start_frames.shape[1]
+        if count:  # seeded context points, drawn per stream; they surround no point
+            drawn = QuerySet(*(column[:, -count:] for column in padded))
+            self._add_support_points(state, drawn, np.full(count, -1, np.int64))
 
-    def _add_support_points(self, state: StreamState, points: QuerySet, parents: Tensor) -> None:
-        """Adds context or support points, never returned.
-
-        ``parents``: (K,) the user point each surrounds, or −1.
-        """
+    def _add_support_points(
+        self, state: StreamState, points: QuerySet, parents: np.ndarray
+    ) -> None:
+        """Adds context or support points, never returned; ``parents`` (K,) their points."""
         self.engine.add_points(state.tracker, points)
-        count = points.start_frames.shape[1]
-        state.is_context = torch.cat((state.is_context, torch.ones(count, dtype=torch.bool)))
-        state.support_of = torch.cat((state.support_of, parents))
+        state.points.add_support(parents)
 
     def _decode(self, state: StreamState, first: int, last: int) -> None:
         if not state.context_added:

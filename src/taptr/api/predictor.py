@@ -30,8 +30,8 @@ from taptr.api.inputs import grid_queries, query_tensor, video_tensor
 from taptr.api.prepared_frames import PreparedFrames
 from taptr.api.queries import model_queries, on_own_frames
 from taptr.api.resize import resize_frames
-from taptr.api.support import GRID_POINTS, LOCAL_OFFSETS, with_support
-from taptr.config import SUPPORT_KINDS, ModelConfig
+from taptr.api.support import numpy_type, with_support
+from taptr.config import ModelConfig
 from taptr.geometry import normalized_to_pixels
 from taptr.memory_estimate import check_memory, estimate_tracking
 from taptr.model.taptr import TAPTR, normalize_frames
@@ -39,16 +39,17 @@ from taptr.model.trajectory import QuerySet
 from taptr.runtime.precision import autocast_type as autocast_type  # re-exported: public
 from taptr.runtime.precision import precision_context as precision_context  # re-exported
 from taptr.runtime.runner import Runner
+from taptr.task.support_schemes import LOCAL_SUPPORT_BUDGET as LOCAL_SUPPORT_BUDGET
+from taptr.task.support_schemes import (
+    SupportPattern,
+    SupportScheme,
+    choose_scheme,
+    model_points,
+    support_scheme,
+)
 from taptr.types import TrackingResult
 
 VideoInput = np.ndarray | Tensor | str | os.PathLike
-
-LOCAL_SUPPORT_BUDGET = 2048
-"""With the default support, TAPTRv3 gets 63 local points per query only while that keeps
-it at or below this many points (32 queries); more queries get the 36 grid points alone,
-and support each other. docs/RESULTS.md ("Support points for TAPTRv3's queries") measures
-what the local points cost per frame against the grid alone, and what they bring; the
-released weights keep the official scheme they were evaluated with, up to this budget."""
 
 
 class Predictor:
@@ -91,9 +92,10 @@ class Predictor:
         support_points: how the user's points are surrounded before the model runs, never
             returned: ``"random"`` (``context_points`` seeded points, TAPTRv2's recipe),
             ``"local_and_grid"`` (63 points around each query and a 6 × 6 grid, TAPTRv3's
-            evaluation), ``"grid"`` (the grid alone) or ``"none"``. Default: the model
-            config's, except that TAPTRv3 falls back to ``"grid"`` when the local points
-            would take it past `LOCAL_SUPPORT_BUDGET` points (more than 32 queries).
+            evaluation), ``"grid"`` (the grid alone), ``"none"``, or any scheme
+            registered in `taptr.task.support_schemes`. Default: the model config's,
+            except that TAPTRv3 falls back to ``"grid"`` when the local points would take
+            it past `LOCAL_SUPPORT_BUDGET` points (more than 32 queries).
         history_frames: TAPTRv3: the most past frames its long-temporal attention holds
             per point, the current one included (0: the whole video; memory grows by
             C · 4 bytes per point and frame, 1 KiB for the released models). Default: the
@@ -135,7 +137,9 @@ class Predictor:
         notice: str | None = None,
     ) -> None:
         config = model.config
-        height, width = input_size or (config.input_size if config else (512, 512))
+        if input_size is None:  # an explicit size is used as given, never replaced
+            input_size = config.input_size if config else (512, 512)
+        height, width = input_size
         self.input_size: tuple[int, int] = (int(height), int(width))
         self.runner = Runner(
             model,
@@ -149,9 +153,8 @@ class Predictor:
         self.model = self.runner.model
         self.resize = config.resize if config else "bilinear"
         self.context_points = _context_points(context_points, config)
-        if support_points is not None and support_points not in SUPPORT_KINDS:
-            choices = ", ".join(SUPPORT_KINDS)
-            raise ValueError(f"support_points must be one of {choices}, got {support_points!r}")
+        if support_points is not None:
+            support_scheme(support_points)  # refuses unknown names, listing the schemes
         self.support_points = support_points
         self.visibility_threshold = _visibility_threshold(visibility_threshold, config)
         self.source = source
@@ -316,25 +319,24 @@ class Predictor:
         chunk = resize_frames(frames, self.input_size, self.resize).to(self.device)
         return normalize_frames(chunk)[None].to(self.dtype)
 
-    def support_scheme(self, num_queries: int) -> str:
-        """The support actually used for ``num_queries`` user points (see the class)."""
+    @property
+    def support_pattern(self) -> SupportPattern:
+        """The support schemes' numbers in the model's normalised units and type."""
+        return SupportPattern.normalised(numpy_type(self.dtype), context_points=self.context_points)
+
+    def chosen_support(self, num_queries: int) -> SupportScheme:
+        """The registered scheme ``num_queries`` user points get (see the class)."""
         config = self.model.config
-        if self.support_points is not None:
-            return self.support_points
-        scheme = config.support_points if config else "random"
-        local_points = num_queries * 64 + 36
-        if scheme == "local_and_grid" and local_points > LOCAL_SUPPORT_BUDGET + 36:
-            return "grid"
-        return scheme
+        configured = config.support_points if config else "random"
+        return choose_scheme(configured, num_queries, self.support_pattern, self.support_points)
+
+    def support_scheme(self, num_queries: int) -> str:
+        """The name of the support ``num_queries`` user points get (see the class)."""
+        return self.chosen_support(num_queries).name
 
     def model_points(self, num_queries: int) -> int:
         """How many points the model tracks for ``num_queries`` user points (support included)."""
-        scheme = self.support_scheme(num_queries)
-        if scheme == "random":
-            return max(num_queries, self.context_points)
-        if scheme == "local_and_grid":
-            return num_queries * (1 + len(LOCAL_OFFSETS)) + GRID_POINTS
-        return num_queries + (GRID_POINTS if scheme == "grid" else 0)
+        return model_points(self.chosen_support(num_queries), num_queries, self.support_pattern)
 
     def with_support(
         self, queries: QuerySet, num_frames: int | None, scheme: str | None = None
@@ -344,14 +346,13 @@ class Predictor:
         Args:
             queries: the user's points (B, N, ·) in model units.
             num_frames: the video's length, or None for a stream.
-            scheme: the support to add; default `support_scheme` of the N points.
+            scheme: the support to add; default the one chosen for the N points.
         """
-        scheme = scheme or self.support_scheme(queries.start_frames.shape[1])
-        if scheme == "none":
-            return queries
-        if scheme == "random":
+        count = queries.start_frames.shape[1]
+        chosen = self.chosen_support(count) if scheme is None else support_scheme(scheme)
+        if chosen.drawn:  # TAPTRv2's seeded context points, drawn in the input's pixels
             return with_context(queries, self.context_points, self.input_size, num_frames)
-        return with_support(queries, scheme)
+        return with_support(queries, chosen.name)
 
     def _track_one(
         self, frames: Tensor, queries: Tensor, backward: bool, on_window: Callable[[], object]

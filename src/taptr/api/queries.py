@@ -2,8 +2,8 @@
 
 `model_queries` turns validated (t, x, y) pixel queries (`taptr.api.inputs.query_tensor`)
 into the model's point set; `on_own_frames` puts each query back on its own frame in the
-results, so that users get exactly the point they gave (DESIGN.md: "the query point
-returned exactly on its own frame").
+results (`taptr.task.pixel_queries`'s rule), so that users get exactly the point they gave
+(DESIGN.md: "the query point returned exactly on its own frame").
 """
 
 from __future__ import annotations
@@ -13,6 +13,7 @@ from torch import Tensor
 
 from taptr.geometry import pixels_to_normalized
 from taptr.model.trajectory import QuerySet
+from taptr.task.pixel_queries import on_own_frames as own_frames
 
 
 def model_queries(
@@ -49,24 +50,21 @@ def on_own_frames(
 ) -> tuple[Tensor, Tensor]:
     """Results with each query exactly where it was given, visible, on its own frame.
 
-    The model's output on a query frame is close to the query but not equal to it; users
-    expect the point they clicked back, so it is overwritten, with logit +inf.
+    `taptr.task.pixel_queries.on_own_frames` on host tensors: the model's output on a
+    query frame is close to the query but not equal to it; users expect the point they
+    clicked back, so it is overwritten, with logit +inf.
 
     Args:
         tracks: (F, N, 2) float (x, y) pixels of frames first_frame..first_frame + F − 1.
         logits: (F, N) visibility logits of the same frames.
         queries: (N, 3) (t, x, y) pixels; t a whole frame index.
         first_frame: index of the first of the F frames (a stream returns frames in parts).
-        hide_earlier: also set the logits of frames before each query frame to −inf: a
-            forward-only pass never tracked them (their positions are meaningless).
+        hide_earlier: also set the logits of frames before each query frame to −inf.
 
     Returns:
         tracks (F, N, 2) and logits (F, N), new tensors.
     """
-    frames = torch.arange(first_frame, first_frame + tracks.shape[0])[:, None]  # (F, 1)
-    starts = queries[:, 0].long()[None]  # (1, N)
-    if hide_earlier:
-        logits = logits.masked_fill(frames < starts, float("-inf"))
-    at_query = frames == starts  # (F, N)
-    tracks = torch.where(at_query[..., None], queries[None, :, 1:].to(tracks.dtype), tracks)
-    return tracks, logits.masked_fill(at_query, float("inf"))
+    placed, values = own_frames(
+        tracks.numpy(), logits.numpy(), queries.numpy(), first_frame, hide_earlier=hide_earlier
+    )
+    return torch.from_numpy(placed), torch.from_numpy(values)

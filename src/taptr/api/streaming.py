@@ -19,11 +19,10 @@ from itertools import islice
 from typing import NamedTuple
 
 import numpy as np
-import torch
 
-from taptr.api.backward import needs_backward, query_frames, reversed_queries
 from taptr.api.online import OnlineTracker, StreamUpdate
 from taptr.api.predictor import Predictor
+from taptr.task.both_ways import needs_backward, query_frames, reversed_queries
 
 
 class FinalFrames(NamedTuple):
@@ -101,7 +100,7 @@ def track_frames_both_ways(
     frame T − 1 − t and keeps only the tracks of the frames before each query frame; the
     second read goes forwards and yields each frame with those tracks before its points'
     query frames and the forward tracks from them on: `Predictor.track` with
-    ``backward=True`` (`taptr.api.backward`), frame by frame.
+    ``backward=True`` (`taptr.task.both_ways`), frame by frame.
 
     Args:
         predictor: the model and its settings.
@@ -115,15 +114,15 @@ def track_frames_both_ways(
     Yields:
         `FinalFrames` in forward order, covering every frame once.
     """
-    query = torch.as_tensor(np.asarray(queries, dtype=np.float64))
+    query = np.asarray(queries, dtype=np.float64)
     if not needs_backward(query):
         yield from track_frames(
             predictor, read_forward(), queries, num_frames=num_frames, chunk=chunk
         )
         return
-    starts = query_frames(query).numpy()
+    starts = query_frames(query)
     backward = None
-    flipped = reversed_queries(query, num_frames).numpy()
+    flipped = reversed_queries(query, num_frames)
     for batch in track_frames(
         predictor, read_reversed(), flipped, num_frames=num_frames, chunk=chunk
     ):

@@ -287,7 +287,7 @@ def count_ops(args: argparse.Namespace, command: str) -> int:
 def check_bench_arguments(args: argparse.Namespace) -> None:
     """Checks the options before the first measured process starts."""
     from taptr.config import PRESETS
-    from taptr.query_checks import check_num_points
+    from taptr.task.query_checks import check_num_points
 
     if args.size is not None:
         check_input_size(args.size, "--size", minimum=32)  # tiny presets: small frames

@@ -116,7 +116,7 @@ def _checked_inputs(
     """
     from taptr.api.regions import read_mask, sample_region_queries
     from taptr.io.video import read_video, video_info
-    from taptr.query_checks import check_num_points
+    from taptr.task.query_checks import check_num_points
 
     check_output_file(args.out, suffixes=(".mp4",))
     check_model_arguments(args)

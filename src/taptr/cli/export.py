@@ -5,7 +5,7 @@ of the decoder with its carried state) and ``taptr-export.json`` (input size, wi
 rules), enough for a sliding-window loop outside Python; ``taptr.export.graph_runner`` drives
 them with the model's own window driver. TAPTRv3 (ONNX): the frame encoder, the step that
 starts points and the per-frame decoder step with all its state as inputs and outputs,
-and a manifest with every rule of the frame loop, which ``taptr.export.OnnxTracker`` runs
+and a manifest with every rule of the frame loop, which ``taptr.onnx.OnnxTracker`` runs
 without torch. ``--check`` tracks the package's sample clip with both the model and the
 graphs and prints the largest differences and the time each took.
 """
@@ -86,9 +86,9 @@ def run(args: argparse.Namespace) -> int:
 
     from taptr.export.graphs import export_model
     from taptr.export.manifest import GRAPHS
-    from taptr.export.v3_manifest import GRAPHS as V3_GRAPHS
-    from taptr.export.v3_manifest import V3Manifest
     from taptr.export.verify import compare
+    from taptr.onnx.v3_manifest import V3Manifest
+    from taptr.onnx.v3_tensors import GRAPHS as V3_GRAPHS
     from taptr.weights.registry import resolve_model
 
     if args.threads:

@@ -95,7 +95,7 @@ OUTPUT_NAMES = ("tracks.npz", "tracks.csv", "overlay.mp4", "trajectories.png", S
 
 def check_track_arguments(args: argparse.Namespace) -> None:
     """Checks every option that can be checked without reading the video."""
-    from taptr.query_checks import check_num_points
+    from taptr.task.query_checks import check_num_points
 
     check_output_folder(args.out)
     check_model_arguments(args)

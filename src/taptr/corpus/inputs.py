@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from taptr.query_checks import grid_points
+from taptr.task.query_checks import grid_points
 
 
 @dataclass(frozen=True)
@@ -118,7 +118,7 @@ def build_queries(
     Raises:
         ValueError: a query frame outside the video, a bad grid or mask, or too many points.
     """
-    from taptr.query_checks import check_num_points
+    from taptr.task.query_checks import check_num_points
 
     if spec.points is not None:
         return np.asarray(spec.points, np.float32)

@@ -19,9 +19,9 @@ TAPTRv3 (TAPTRv3-DELTA.md §5, ``evaluate.sh`` with ``--streaming``):
 - frames are resized to the model's input size (384 × 512 for ResNet-18) by torchvision's
   default bilinear resize, antialiased;
 - 63 local support points around each real point and 36 grid points
-  (`taptr.api.support`), the grid points' start frames drawn from numpy's generator seeded
-  once with 42, one draw per video in dataset order (video k gets the (k + 1)-th draw);
-  every point normalised with the official float32 steps (`official_normalised`);
+  (`taptr.task.support_schemes`), the grid points' start frames drawn from numpy's
+  generator seeded once with 42, one draw per video in dataset order (video k gets the
+  (k + 1)-th draw); every point normalised with the official float32 steps (`official_normalised`);
 - ``first`` only: the official v3 code runs ``strided`` through another path that fails
   with ``--streaming``; here ``strided`` pads each query frame's points the same way, with
   the video's draws continuing, as a convenience, not an official recipe;
@@ -39,12 +39,17 @@ import torch.nn.functional as F
 
 from taptr.api import TAPTR, normalize_frames
 from taptr.api.context import PREFIX_FRAMES, ContextPoints, draw_context
-from taptr.api.support import GRID_SEED, grid_positions, grid_start_frames, local_offsets
 from taptr.eval.query_sampling import QueryPoints
 from taptr.eval.trackers import query_frames, track_both_ways
 from taptr.geometry import normalized_to_pixels, pixels_to_normalized
 from taptr.model.v3.taptr import TAPTRv3
 from taptr.official.model_forward import official_forward
+from taptr.task.support_schemes import (
+    GRID_SEED,
+    SupportPattern,
+    grid_start_frames,
+    support_scheme,
+)
 
 NUM_QUERIES = 800
 """Points per pass after padding (the official ``num_queries_per_video_eval``)."""
@@ -75,6 +80,9 @@ def official_padding(
 def support_points_256(queries: np.ndarray, draws: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """TAPTRv3's 'local_and_grid' support of real queries, in 256 × 256 pixels.
 
+    The registry's scheme (`taptr.task.support_schemes`) on the evaluation's pixels, in
+    float64 as the official code adds them.
+
     Args:
         queries: (n, 3) real (t, x, y), each on its first visible frame.
         draws: (36,) the grid points' start frames (this video's draw).
@@ -84,12 +92,12 @@ def support_points_256(queries: np.ndarray, draws: np.ndarray) -> tuple[np.ndarr
         point (its query position plus the offsets, from its query frame), the grid
         points; and (K,) their kind: 0 real, 1 local, 2 grid.
     """
-    offsets = local_offsets()
-    local_xy = (queries[:, None, 1:] + offsets).reshape(-1, 2)
-    local_t = np.repeat(queries[:, 0], len(offsets))
-    grid = np.c_[draws.astype(np.float64), grid_positions()]
-    points = np.concatenate([queries, np.c_[local_t, local_xy], grid])
-    kind = np.repeat([0, 1, 2], [len(queries), len(local_xy), len(grid)])
+    starts = np.rint(queries[:, 0]).astype(np.int64)
+    pattern = SupportPattern.pixels_256(draws)
+    support = support_scheme("local_and_grid").points(starts, queries[:, 1:], pattern)
+    added = np.c_[support.start_frames.astype(np.float64), support.positions]
+    points = np.concatenate([queries, added])
+    kind = np.concatenate([np.zeros(len(queries), np.int64), np.where(support.parents >= 0, 1, 2)])
     return points, kind
 
 
@@ -234,12 +242,12 @@ class OfficialTAPTR:
         tracks = np.zeros((video.shape[0], count, 2))
         visible = np.zeros((video.shape[0], count), dtype=bool)
         for group, draws in zip(groups, grid_draws(index, len(groups)), strict=True):
-            queries, _ = support_points_256(points.queries[group], draws)
+            queries, kind = support_points_256(points.queries[group], draws)
             start_visible = np.ones(len(queries), dtype=bool)
             if query_mode == "first":
                 group_tracks, group_visible = self._pass(video, queries, start_visible)
             else:
-                queries[: len(group) * 64, 0] = frames[group[0]]  # real and local points
+                queries[kind < 2, 0] = frames[group[0]]  # real and local points
                 track = functools.partial(self._pass, start_visible=start_visible)
                 group_tracks, group_visible = track_both_ways(track, video, queries)
             tracks[:, group] = group_tracks[:, : len(group)]

@@ -14,7 +14,8 @@ from typing import Any
 import numpy as np
 
 from taptr.export.manifest import GRAPHS, INPUT_NAMES, ExportManifest
-from taptr.export.sessions import onnxruntime_module, open_sessions
+from taptr.onnx.export_files import require_regular
+from taptr.onnx.ort_engine import onnxruntime_module, open_sessions
 
 
 class _GraphSteps:
@@ -66,7 +67,7 @@ class OnnxSteps(_GraphSteps):
     ) -> None:
         onnxruntime_module()  # its message before the manifest's
         self.manifest = self._load_manifest(directory)
-        graphs = {name: str(self.manifest.graph_path(directory, name)) for name in GRAPHS}
+        graphs = {name: str(_graph_file(self.manifest, directory, name)) for name in GRAPHS}
         self.sessions = open_sessions(graphs, threads, providers)
 
     def _run(self, name: str, *inputs: np.ndarray) -> list[Any]:
@@ -92,7 +93,7 @@ class TorchScriptSteps(_GraphSteps):
             warnings.simplefilter("ignore", FutureWarning)  # TorchScript is deprecated upstream
             self.modules = {
                 name: torch.jit.load(
-                    str(self.manifest.graph_path(directory, name)), map_location="cpu"
+                    str(_graph_file(self.manifest, directory, name)), map_location="cpu"
                 )
                 for name in GRAPHS
             }
@@ -104,6 +105,11 @@ class TorchScriptSteps(_GraphSteps):
         if isinstance(outputs, torch.Tensor):
             outputs = (outputs,)
         return [o.numpy() for o in outputs]
+
+
+def _graph_file(manifest: ExportManifest, directory: str | os.PathLike[str], name: str) -> str:
+    """Graph ``name``'s file, checked to be a regular file before anything opens it."""
+    return str(require_regular(manifest.graph_path(directory, name), f"graph {name}"))
 
 
 def load_steps(

@@ -14,7 +14,7 @@ Shapes: T frames, N points, C channels, S memory tokens, W_t frames in a window.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import NamedTuple, Protocol
+from typing import Protocol
 
 import numpy as np
 import torch
@@ -25,6 +25,7 @@ from taptr.model.frame_source import FrameFeatures
 from taptr.model.frame_tables import FrameTables
 from taptr.model.sliding_window import WindowDecoding, run_windows
 from taptr.model.trajectory import QuerySet
+from taptr.task.results import TrackArrays
 
 
 class Steps(Protocol):
@@ -49,18 +50,6 @@ class Steps(Protocol):
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """One window → position logits (W_t, N, 4), visibility logits (W_t, N, 3), content."""
         ...
-
-
-class TrackArrays(NamedTuple):
-    """Tracks of a whole video in model units.
-
-    Attributes:
-        positions: (T, N, 2) float32 (x, y) normalised by (W − 1, H − 1).
-        visibility_logits: (T, N, 3) float32 (channel 1 = visible).
-    """
-
-    positions: np.ndarray
-    visibility_logits: np.ndarray
 
 
 def _to_numpy(batch_of_one: Tensor) -> np.ndarray:

@@ -32,9 +32,10 @@ from taptr.export.exporter import (
 from taptr.export.manifest import INPUT_NAMES, OUTPUT_NAMES, ExportFormat, ExportManifest
 from taptr.export.modules import FrameEncoder, PointInitializer, WindowDecoder, feature_shapes
 from taptr.export.v3_graphs import export_v3
-from taptr.export.v3_manifest import V3Manifest
+from taptr.io.atomic import atomic_path
 from taptr.model.taptr import TAPTR
 from taptr.model.v3.taptr import TAPTRv3
+from taptr.onnx.v3_manifest import V3Manifest
 
 
 class NotExportableError(ValueError):
@@ -66,7 +67,7 @@ def _manifest(
     if model.config is None:
         raise ValueError("the model has no config; build or load it with taptr")
     config = model.config
-    height, width = input_size or config.input_size
+    height, width = config.input_size if input_size is None else input_size
     size = (int(height), int(width))
     return ExportManifest(
         format=format,
@@ -151,8 +152,9 @@ def export_onnx(
     examples = example_inputs(manifest)
     for name, module in _wrappers(prepared, manifest).items():
         names = (list(INPUT_NAMES[name]), list(OUTPUT_NAMES[name]))
-        path = manifest.graph_path(directory, name)
-        export_onnx_graph(module, examples[name], path, names, _dynamic_shapes(name))
+        # written beside its name, then renamed over it: never through a link there
+        with atomic_path(manifest.graph_path(directory, name)) as path:
+            export_onnx_graph(module, examples[name], path, names, _dynamic_shapes(name))
     manifest.save(directory)
     return manifest
 
@@ -179,7 +181,8 @@ def export_torchscript(
     for name, module in _wrappers(prepared, manifest).items():
         with quiet_exporter(), torch.no_grad():
             traced = torch.jit.trace(module, examples[name], check_trace=False)
-            torch.jit.save(traced, str(manifest.graph_path(directory, name)))
+            with atomic_path(manifest.graph_path(directory, name)) as path:
+                torch.jit.save(traced, str(path))
     manifest.save(directory)
     return manifest
 

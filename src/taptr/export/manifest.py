@@ -1,24 +1,33 @@
-"""The description written next to exported graphs: what they expect and the window rules.
+"""The description written next to TAPTR v1 and v2's graphs: what they expect, the window rules.
 
 An export folder holds three graphs (`GRAPHS`) and ``taptr-export.json``; a loop in any
-language needs nothing else. This module reads and writes that file with the standard
-library only, so a program that only reads the manifest does not need torch.
+language needs nothing else. The file is read and written with the standard library only
+(`taptr.onnx.manifest_file`), so a program that only reads the manifest does not need
+torch, and checked whole when read (`manifest_fields`): every key present and no other,
+each value's type and range. TAPTRv3's manifest is `taptr.onnx.v3_manifest`'s.
 """
 
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Literal
 
-from taptr.io.atomic import atomic_path
+from taptr.onnx.manifest_file import MANIFEST_NAME as MANIFEST_NAME
+from taptr.onnx.manifest_file import manifest_path, read_manifest, write_manifest
+from taptr.onnx.manifest_schema import (
+    Check,
+    ManifestError,
+    boolean,
+    checked,
+    choice,
+    integer,
+    sequence,
+)
 
 ExportFormat = Literal["onnx", "torchscript"]
 
-MANIFEST_NAME = "taptr-export.json"
-FORMAT_VERSION = 1
 GRAPHS = ("encoder", "init_points", "decode_window")
 """Graph names: frames → memory; memory and positions → content; one window's decoder."""
 
@@ -85,52 +94,42 @@ class ExportManifest:
 
     @classmethod
     def load(cls, directory: str | os.PathLike[str]) -> ExportManifest:
-        """Reads ``taptr-export.json`` from ``directory``.
+        """Reads and checks ``taptr-export.json`` from ``directory``.
 
         Raises:
             FileNotFoundError: no manifest there (not an export folder).
-            ValueError: a manifest of another version, or of a TAPTRv3 export.
+            ManifestError: a TAPTRv3 export's manifest, or one that does not hold what a
+                TAPTR v1 or v2 manifest holds (one line naming the file and the key).
         """
         data = read_manifest(directory)
+        where = str(manifest_path(directory))
         if data.get("version") == 3:
-            raise ValueError(
-                f"{directory} holds a TAPTRv3 export: run it with taptr.export.OnnxTracker "
-                "(or read its manifest with taptr.export.V3Manifest)"
+            raise ManifestError(
+                f"{directory} holds a TAPTRv3 export: run it with taptr.onnx.OnnxTracker "
+                "(or read its manifest with taptr.onnx.V3Manifest)"
             )
-        data["input_size"] = tuple(data["input_size"])
-        data["spatial_shapes"] = tuple(tuple(s) for s in data["spatial_shapes"])
-        return cls(**data)
+        return cls(**checked(data, manifest_fields(), where))
 
 
-def read_manifest(directory: str | os.PathLike[str]) -> dict[str, Any]:
-    """The manifest of an export folder (any model) as a dict, its format version checked.
+def manifest_fields() -> dict[str, Check]:
+    """Every key of a TAPTR v1 or v2 manifest (``taptr_export`` read before) and its check."""
+    pair = sequence(integer(1, 8192), length=2)
+    return {
+        "format": choice("onnx", "torchscript"),
+        "input_size": pair,
+        "spatial_shapes": sequence(pair, most=8),
+        "d_model": integer(4, 4096),
+        "window_size": integer(1, 64),
+        "window_stride": integer(1, 64),
+        "long_video_frames": integer(1, 10**6),
+        "memory_efficient": boolean,
+        "version": choice(1, 2),
+        "opset": _optional(integer(7, 100)),
+    }
 
-    Raises:
-        FileNotFoundError: no manifest there (not an export folder).
-        ValueError: a manifest of another format version.
-    """
-    path = Path(directory) / MANIFEST_NAME
-    if not path.is_file():
-        raise FileNotFoundError(f"{directory} is not a taptr export folder (no {MANIFEST_NAME})")
-    data = json.loads(path.read_text())
-    version = data.pop("taptr_export", None)
-    if version != FORMAT_VERSION:
-        raise ValueError(f"{path}: export format {version}, this taptr reads {FORMAT_VERSION}")
-    return data
 
+def _optional(check: Check) -> Check:
+    def optional(value: object, key: str) -> object:
+        return None if value is None else check(value, key)
 
-def write_manifest(
-    directory: str | os.PathLike[str], fields: dict[str, Any], indent: int = 2
-) -> Path:
-    """Writes the manifest of an export folder (any model), whole or not at all.
-
-    Args:
-        directory: the export folder.
-        fields: the manifest's fields; the format version is added first.
-        indent: JSON indentation.
-    """
-    path = Path(directory) / MANIFEST_NAME
-    data = {"taptr_export": FORMAT_VERSION, **fields}
-    with atomic_path(path) as temporary:
-        temporary.write_text(json.dumps(data, indent=indent) + "\n")
-    return path
+    return optional

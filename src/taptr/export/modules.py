@@ -20,6 +20,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from taptr.model.position_encoding import feature_map_encoding
 from taptr.model.taptr import TAPTR, normalize_frames
 
 
@@ -52,6 +53,45 @@ class FrameEncoder(nn.Module):
         # encode_images, not encode: encode's chunk loop over the frame count would fix F
         # to the example's value when exporting
         return self.model.encode_images(normalize_frames(frames)).memory  # (F, S, C)
+
+
+class FixedSizeEncoder(FrameEncoder):
+    """`FrameEncoder` for one frame size, each token's level held as a constant.
+
+    The encoder's position encoding adds each token's level embedding to its sine
+    encoding. Traced as the model computes it, the level of every token
+    (``repeat_interleave`` of the levels' sizes) exports as a subgraph of constants
+    (CumSum → Range → Less → GatherND) whose shapes OpenVINO's CPU plugin cannot infer
+    ("the memory desc is undefined"): it compiled none of TAPTRv3's encoders. Here the
+    (S,) levels are computed once, for the export's fixed input size, and the graph
+    gathers the embedding with them as an initializer; the sine encoding is traced as
+    before, so the graph computes what it computed, to the bit.
+
+    Args:
+        model: the network (a copy prepared for export: its encoder's
+            ``position_encoding`` is replaced by this one).
+        spatial_shapes: (H_l, W_l) of the memory levels at the export's input size.
+    """
+
+    def __init__(self, model: TAPTR, spatial_shapes: list[tuple[int, int]]) -> None:
+        super().__init__(model)
+        encoder = model.encoder
+        shapes = [(int(h), int(w)) for h, w in spatial_shapes]
+        sizes = torch.tensor([h * w for h, w in shapes])
+        self.register_buffer("levels", torch.repeat_interleave(torch.arange(len(shapes)), sizes))
+        channels = encoder.level_embed.shape[1] // 2
+
+        def encoding(spatial: list[tuple[int, int]], dtype: torch.dtype) -> Tensor:
+            """(S, C) sine encoding of every token plus its level's embedding."""
+            if [(int(h), int(w)) for h, w in spatial] != shapes:
+                raise ValueError(f"this encoder was fixed for levels {shapes}, got {spatial}")
+            device = encoder.level_embed.device
+            maps = [
+                feature_map_encoding(h, w, channels, encoder.temperature, device) for h, w in shapes
+            ]
+            return torch.cat(maps).to(dtype) + encoder.level_embed[self.levels]
+
+        encoder.position_encoding = encoding  # the copy's own: the model passed is not touched
 
 
 class _OnMemory(nn.Module):

@@ -2,7 +2,7 @@
 
 `export_v3(model, directory)` writes ``encoder.onnx``, ``start_points.onnx`` and
 ``decode_step.onnx`` (`taptr.export.v3_modules`) and ``taptr-export.json``
-(`taptr.export.v3_manifest.V3Manifest`). Graphs take batch size one; the frame count of the
+(`taptr.onnx.v3_manifest.V3Manifest`). Graphs take batch size one; the frame count of the
 encoder, the points N and the history buffer's slots H are dynamic; the frame size, and
 with it the memory tokens S, is fixed.
 
@@ -22,19 +22,10 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from taptr.api.predictor import LOCAL_SUPPORT_BUDGET
-from taptr.api.support import (
-    EVAL_SCALE,
-    GRID_SEED,
-    LOCAL_OFFSETS,
-    grid_positions,
-    grid_start_frames,
-)
 from taptr.config import check_history_frames
 from taptr.export.exporter import ONNX_OPSET, export_onnx_graph, require_onnx_exporter
-from taptr.export.modules import FrameEncoder, feature_shapes
+from taptr.export.modules import FixedSizeEncoder, feature_shapes
 from taptr.export.v3_attention import packed_model
-from taptr.export.v3_manifest import GRAPHS, SupportRule, V3Manifest, graph_specs
 from taptr.export.v3_modules import (
     EXPORT_EXECUTION,
     FrameStep,
@@ -43,10 +34,14 @@ from taptr.export.v3_modules import (
     PointStarterWithoutContext,
 )
 from taptr.geometry import INVERSE_SIGMOID_EPS
+from taptr.io.atomic import atomic_path
 from taptr.model.taptr import IMAGENET_MEAN, IMAGENET_STD
 from taptr.model.trajectory import QuerySet
 from taptr.model.v3.per_frame import initial_visibility
 from taptr.model.v3.taptr import TAPTRv3
+from taptr.onnx.v3_manifest import SupportRule, V3Manifest
+from taptr.onnx.v3_tensors import GRAPHS, graph_specs
+from taptr.task.support_schemes import LOCAL_SUPPORT_BUDGET, SupportPattern
 
 
 def prepare_v3(model: TAPTRv3) -> TAPTRv3:
@@ -76,16 +71,13 @@ def support_rule(model: TAPTRv3) -> SupportRule:
     """The model config's support points, in the normalised units the loop adds them in."""
     config = model.config
     assert config is not None
-    offsets = (LOCAL_OFFSETS / EVAL_SCALE).astype(np.float32)
-    grid = (grid_positions() / EVAL_SCALE).astype(np.float32)
+    pattern = SupportPattern.normalised(np.float32)  # the task layer's, as the loop adds them
     return SupportRule(
         scheme=config.support_points,
         local_budget=LOCAL_SUPPORT_BUDGET,
-        local_offsets=tuple((float(x), float(y)) for x, y in offsets),
-        grid_positions=tuple((float(x), float(y)) for x, y in grid),
-        grid_start_frames=tuple(
-            int(f) for f in grid_start_frames(np.random.RandomState(GRID_SEED))
-        ),
+        local_offsets=tuple((float(x), float(y)) for x, y in pattern.local_offsets),
+        grid_positions=tuple((float(x), float(y)) for x, y in pattern.grid_positions),
+        grid_start_frames=tuple(int(f) for f in pattern.grid_start_frames),
         context_points=config.context_points,
     )
 
@@ -103,7 +95,7 @@ def v3_manifest(
         raise ValueError("the model has no config; build or load it with taptr")
     limit = model.history_frames if history_frames is None else history_frames
     check_history_frames(limit)
-    height, width = input_size or config.input_size
+    height, width = config.input_size if input_size is None else input_size
     size = (int(height), int(width))
     shapes = tuple(feature_shapes(model, size))
     tokens = sum(h * w for h, w in shapes)
@@ -135,7 +127,7 @@ def v3_wrappers(model: TAPTRv3, manifest: V3Manifest) -> dict[str, nn.Module]:
     shapes = [(h, w) for h, w in manifest.spatial_shapes]
     with_context = manifest.context_patch > 0
     modules: dict[str, nn.Module] = {
-        "encoder": FrameEncoder(model),
+        "encoder": FixedSizeEncoder(model, shapes),
         "start_points": (PointStarter if with_context else PointStarterWithoutContext)(
             model, shapes
         ),
@@ -214,8 +206,9 @@ def export_v3(
     examples = example_inputs(manifest)
     for name, module in v3_wrappers(prepared, manifest).items():
         names = (manifest.input_names(name), manifest.output_names(name))
-        path = manifest.graph_path(directory, name)
-        export_onnx_graph(module, examples[name], path, names, dynamic_shapes(manifest, name))
+        # written beside its name, then renamed over it: never through a link there
+        with atomic_path(manifest.graph_path(directory, name)) as path:
+            export_onnx_graph(module, examples[name], path, names, dynamic_shapes(manifest, name))
     manifest.save(directory)
     return manifest
 

@@ -3,7 +3,7 @@
 `compare` tracks the same points through the same frames twice: with the PyTorch model's
 own driver (`taptr.runtime.engines.run_tracker`, its current attention kernel) and with the
 exported graphs (TAPTR v1 and v2: the same sliding-window driver over the graphs,
-`taptr.export.graph_runner`; TAPTRv3: the torch-free frame loop, `taptr.export.v3_loop`),
+`taptr.export.graph_runner`; TAPTRv3: the torch-free frame loop, `taptr.onnx.frame_loop`),
 and reports the largest differences and the time each took.
 """
 
@@ -19,16 +19,17 @@ import torch
 
 from taptr.data.sample_video import make_sample_clip
 from taptr.export.backends import load_steps
-from taptr.export.graph_runner import TrackArrays, track_points
+from taptr.export.graph_runner import track_points
 from taptr.export.manifest import ExportManifest
-from taptr.export.v3_loop import track_points as track_frames
-from taptr.export.v3_manifest import V3Manifest
-from taptr.export.v3_sessions import OnnxGraphs
 from taptr.model.taptr import TAPTR, normalize_frames
 from taptr.model.trajectory import QuerySet
 from taptr.model.v3.taptr import TAPTRv3
+from taptr.onnx.frame_loop import track_points as track_frames
+from taptr.onnx.graph_engines import open_graphs
+from taptr.onnx.v3_manifest import V3Manifest
 from taptr.runtime.engines import run_tracker
 from taptr.runtime.frames import EncodedFrames
+from taptr.task.results import TrackArrays
 
 
 class Parity(NamedTuple):
@@ -118,7 +119,7 @@ def exported_tracker(
     torch-free frame loop.
     """
     if isinstance(model, TAPTRv3):
-        graphs = OnnxGraphs(directory, threads=threads)
+        graphs = open_graphs(directory, "onnxruntime", threads=threads)
 
         def frame_loop(frames: np.ndarray, starts: np.ndarray, xy: np.ndarray) -> TrackArrays:
             return TrackArrays(*track_frames(graphs, frames, len(frames), starts, xy))

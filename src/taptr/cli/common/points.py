@@ -14,7 +14,7 @@ The rules, as ``taptr track --help`` states them:
   error naming the value (queries are float32, which would round it to 47 silently), and
   ``47.0`` or ``4.7e1`` is frame 47.
 
-Both stop at the limit of `taptr.query_checks.max_points` before building the array.
+Both stop at the limit of `taptr.task.query_checks.max_points` before building the array.
 `build_queries` turns any of ``taptr track``'s query options (these two, ``--grid``,
 ``--mask``) into (N, 3) queries.
 """
@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from taptr.query_checks import check_num_points, check_query_values, max_points
+from taptr.task.query_checks import check_num_points, check_query_values, max_points
 
 if TYPE_CHECKING:
     from taptr.io.video import VideoInfo

@@ -66,7 +66,7 @@ def check_run_memory(
     )
     what = f"tracking {points:,} points through {num_frames:,} frames at {height}x{width}"
     fewer = f"track fewer points (now {num_points:,})"
-    if points > num_points and predictor.support_scheme(num_points) == "random":
+    if points > num_points and predictor.chosen_support(num_points).drawn:  # context points
         fewer += f", fewer context points (--context-points, now {predictor.context_points:,})"
     knobs = (
         f"lower --input-size (now {height} {width}), {fewer} "
@@ -85,7 +85,7 @@ def _context_note(predictor: Predictor, num_points: int, points: int) -> str:
     """What the context points beyond the model's own cost in time, or "" for none to say."""
     config = predictor.model.config
     own = config.context_points if config is not None else 0
-    if predictor.support_scheme(num_points) != "random" or points <= num_points:
+    if not predictor.chosen_support(num_points).drawn or points <= num_points:
         return ""
     usual = max(own, num_points)  # what the model's own context would track
     if points <= max(CONTEXT_FACTOR * usual, CONTEXT_NOTED):

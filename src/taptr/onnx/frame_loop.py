@@ -5,7 +5,7 @@ For every frame f, in order, as the PyTorch driver (`taptr.model.v3.per_frame`) 
 1. each point's logits on f before decoding ("unwritten"): the manifest's visible
    logits on its start frame and occluded ones elsewhere (or its start label on every
    frame, for a model without visibility weights);
-2. f is opened in the history (`taptr.export.v3_history`) with each point's initial
+2. f is opened in the history (`taptr.onnx.ring_history`) with each point's initial
    content and its unwritten logit (channel 1);
 3. points starting on f: ``start_points`` on f's memory gives their initial content and
    context, and every frame they hold is set to that content;
@@ -25,32 +25,14 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import NamedTuple, Protocol
+from typing import NamedTuple
 
 import numpy as np
 
-from taptr.export.v3_history import RingHistory
-from taptr.export.v3_manifest import V3Manifest
-
-
-class V3Graphs(Protocol):
-    """The three graphs, numpy in and out (`taptr.export.v3_sessions.OnnxGraphs`)."""
-
-    manifest: V3Manifest
-
-    def encode(self, frames: np.ndarray) -> np.ndarray:
-        """Frames (F, 3, H, W) RGB in [0, 1] → memory (F, S, C)."""
-        ...
-
-    def start_points(
-        self, memory: np.ndarray, positions: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray | None]:
-        """Memory (S, C), positions (N, 2) → content (N, C), context (N, K, K, C) or None."""
-        ...
-
-    def decode_step(self, inputs: dict[str, np.ndarray]) -> tuple[np.ndarray, ...]:
-        """``decode_step``'s named inputs → new positions (N, 4), visibility (N, 3), features."""
-        ...
+from taptr.onnx.graph_engines import StepGraphs
+from taptr.onnx.ring_history import RingHistory
+from taptr.onnx.v3_manifest import V3Manifest
+from taptr.task.results import TrackArrays
 
 
 @dataclass
@@ -181,7 +163,7 @@ def unwritten(manifest: V3Manifest, state: LoopState, frame: int) -> np.ndarray:
 
 
 def decode_frame(
-    graphs: V3Graphs, state: LoopState, memory_of: Callable[[int], np.ndarray]
+    graphs: StepGraphs, state: LoopState, memory_of: Callable[[int], np.ndarray]
 ) -> FrameResult:
     """Decodes ``state.next_frame`` and updates ``state`` in place (steps 1-5).
 
@@ -215,7 +197,9 @@ def decode_frame(
     return FrameResult(_sigmoid(positions[:, :2]), visibility)
 
 
-def _start_points(graphs: V3Graphs, state: LoopState, memory: np.ndarray, new: np.ndarray) -> None:
+def _start_points(
+    graphs: StepGraphs, state: LoopState, memory: np.ndarray, new: np.ndarray
+) -> None:
     """Step 3: the initial content and context of the points selected by ``new`` (N,)."""
     content, context = graphs.start_points(memory, state.query_positions[new])
     state.initial_content[new] = content
@@ -266,7 +250,7 @@ class FrameMemory:
         load: frame t → (3, H, W) float32 in [0, 1] at the input size.
     """
 
-    def __init__(self, graphs: V3Graphs, load: FrameLoader) -> None:
+    def __init__(self, graphs: StepGraphs, load: FrameLoader) -> None:
         self.graphs = graphs
         self.load = load
         self.frame = -1
@@ -281,20 +265,8 @@ class FrameMemory:
         return self.memory
 
 
-class TrackArrays(NamedTuple):
-    """Tracks of a whole video in model units.
-
-    Attributes:
-        positions: (T, N, 2) float32 (x, y) normalised by (W − 1, H − 1).
-        visibility_logits: (T, N, 3) float32 (channel 1 = visible).
-    """
-
-    positions: np.ndarray
-    visibility_logits: np.ndarray
-
-
 def track_points(
-    graphs: V3Graphs,
+    graphs: StepGraphs,
     frames: np.ndarray | FrameLoader,
     num_frames: int,
     start_frames: np.ndarray,

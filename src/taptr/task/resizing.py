@@ -1,15 +1,18 @@
-"""Frames to the export's input size in numpy, the two ways a model's config can ask for.
+"""Frames to the model's input size, the two ways a model's config can ask for.
 
-The torch-free twins of `taptr.api.resize`, equal to it up to float rounding:
-
-- ``"bilinear"``: PyTorch's antialiased bilinear interpolation (``F.interpolate(...,
-  mode="bilinear", antialias=True)``, half-pixel centres): each output pixel i of an axis
+- ``"bilinear"``: antialiased bilinear interpolation with half-pixel centres, what taptr's
+  own models are trained with: each output pixel i of an axis
   shrunk by s = in / out averages the inputs j around its centre c = s · (i + 0.5) with
   the triangle weights max(0, 1 − |j + 0.5 − c| / max(s, 1)), normalised to sum to one,
   over j in [⌊c − max(s, 1) + 0.5⌋, ⌊c + max(s, 1) + 0.5⌋); width first, then height.
-  Written as one (out, in) weight matrix per axis.
-- ``"lanczos"``: the official demo's mediapy resize: Pillow's Lanczos on each channel as a
-  float image in 0..255, not clipped, then divided by 255.
+  Written here as one (out, in) weight matrix per axis; `taptr.api.resize` computes the
+  same function on the model's device with ``F.interpolate(..., mode="bilinear",
+  antialias=True)`` (equal to 3e-6, tests/test_export_v3_loop.py).
+- ``"lanczos"``: the official demo's mediapy resize (TAPTRv2-SPEC.md §6): frames become
+  float32 values in 0..255, each channel is resized on its own by Pillow's Lanczos filter
+  on a float (``'F'``) image, and the result is **not** clipped (the filter's overshoot,
+  about −18…292 on sharp edges, is kept) before the division by 255. Bit for bit the
+  official model input; `taptr.api.resize` runs this same function.
 
 Frames already at the input size are only converted to float32 in [0, 1].
 """
@@ -48,14 +51,31 @@ def bilinear_resize(frames: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     return np.ascontiguousarray(frames, np.float32)
 
 
-def lanczos_resize(frames: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """(F, 3, H, W) float32 in [0, 1] → (F, 3, H_m, W_m): Pillow's Lanczos, not clipped."""
+RESIZE_METHODS = ("lanczos", "bilinear")
+"""The resize rules a model's config can name (`taptr.config.ResizeKind`)."""
+
+
+def check_method(method: str) -> str:
+    """``method`` when it is one of `RESIZE_METHODS`.
+
+    Raises:
+        ValueError: an unknown method.
+    """
+    if method not in RESIZE_METHODS:
+        raise ValueError(f"unknown resize {method!r}; use 'lanczos' or 'bilinear'")
+    return method
+
+
+def lanczos_resize(pixels: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """(F, 3, H, W) float32 values in 0..255 → (F, 3, H_m, W_m) / 255: Pillow's Lanczos.
+
+    Not clipped (module docstring).
+    """
     from PIL import Image
 
     height, width = size
-    pixels = frames * np.float32(255)
-    resized = np.empty((*frames.shape[:2], height, width), np.float32)
-    for index in np.ndindex(*frames.shape[:2]):
+    resized = np.empty((*pixels.shape[:2], height, width), np.float32)
+    for index in np.ndindex(*pixels.shape[:2]):
         image = Image.fromarray(np.ascontiguousarray(pixels[index]))  # mode 'F'
         resized[index] = np.asarray(image.resize((width, height), Image.Resampling.LANCZOS))
     return resized / np.float32(255)
@@ -72,11 +92,10 @@ def resize_frames(frames: np.ndarray, size: tuple[int, int], method: str) -> np.
     Raises:
         ValueError: an unknown method.
     """
-    unit = frames.transpose(0, 3, 1, 2).astype(np.float32) / np.float32(255)
-    if tuple(unit.shape[-2:]) == tuple(size):
-        return np.ascontiguousarray(unit)
-    if method == "bilinear":
-        return bilinear_resize(unit, size)
+    check_method(method)
+    pixels = frames.transpose(0, 3, 1, 2).astype(np.float32)  # (F, 3, H, W) in 0..255
+    if tuple(pixels.shape[-2:]) == tuple(size):
+        return np.ascontiguousarray(pixels / np.float32(255))
     if method == "lanczos":
-        return lanczos_resize(unit, size)
-    raise ValueError(f"unknown resize {method!r}; use 'lanczos' or 'bilinear'")
+        return lanczos_resize(pixels, size)
+    return bilinear_resize(pixels / np.float32(255), size)
