@@ -118,7 +118,7 @@ def test_without_gdown_or_offline_the_message_of_today_stays(
         taptr.from_pretrained("taptrv3-official")
     assert "downloading" not in caplog.text  # no licence notice for a download never tried
     message = str(raised.value)
-    assert "gdown is not installed (pip install 'taptr[drive]')" in message
+    assert "gdown is not installed (pip install 'gdown" in message
     assert f"https://drive.google.com/file/d/{R18_ID}" in message and "in a browser" in message
     monkeypatch.delitem(sys.modules, "gdown")
     monkeypatch.setenv("TAPTR_OFFLINE", "1")

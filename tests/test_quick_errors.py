@@ -106,3 +106,16 @@ def test_demo_refuses_port_zero_before_loading(capsys):
     # Gradio accepted port 0, then failed to reach itself: "ConnectError ... a bug in taptr"
     assert main(["demo", "--port", "0", "--checkpoint", "tiny"]) == 2
     assert "--port must lie in [1, 65535], got 0" in capsys.readouterr().err
+
+
+def test_install_lines_name_the_extras_packages():
+    """A missing optional package is named with a pip line that works from a checkout too."""
+    from taptr.messages import install_line
+
+    line = install_line("export")
+    assert line.startswith("pip install ") and "taptr[" not in line
+    assert "onnxruntime" in line or line == "pip install -e '.[export]'"
+    assert install_line("no-such-extra") == "pip install -e '.[no-such-extra]'"
+    sources = Path(__file__).resolve().parents[1] / "src" / "taptr"
+    quoted = [p for p in sources.rglob("*.py") if "pip install 'taptr[" in p.read_text()]
+    assert not quoted, f"install lines that fail from a checkout: {quoted}"

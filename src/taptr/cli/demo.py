@@ -16,6 +16,7 @@ from taptr.cli.common.model_options import (
     check_model_arguments,
     load_predictor,
 )
+from taptr.messages import install_line
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -25,7 +26,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     defaults = Limits()
     parser = subparsers.add_parser(
         "demo",
-        help="start the web demo (needs pip install 'taptr[demo]')",
+        help="start the web demo (needs the demo extra: Gradio)",
         description="Serves a Gradio page for tracking clicked points, painted regions or grids "
         "and for editing videos. Uploads and outputs stay in a temporary folder that is removed "
         "on exit (or by the next start, if the server was killed). Stop it with Ctrl-C.",
@@ -64,9 +65,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     """Loads the model and serves the demo until interrupted."""
     if importlib.util.find_spec("gradio") is None:
-        print(
-            "taptr demo: error: the demo needs Gradio: pip install 'taptr[demo]'", file=sys.stderr
-        )
+        hint = install_line("demo")
+        print(f"taptr demo: error: the demo needs Gradio: {hint}", file=sys.stderr)
         return 2
     from taptr.apps.demo.settings import Limits
 

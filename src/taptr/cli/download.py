@@ -11,10 +11,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "download",
         help="fetch named weights ahead of time",
         description="Fetches named weights once, where taptr looks for them: the authors' "
-        "TAPTRv2 (taptrv2-official) into the Hugging Face cache (needs pip install "
-        "'taptr[hub]'), TAPTRv3 (taptrv3-official, taptrv3-r50-official) from Google "
+        "TAPTRv2 (taptrv2-official) into the Hugging Face cache (needs the hub "
+        "extra), TAPTRv3 (taptrv3-official, taptrv3-r50-official) from Google "
         "Drive into the weights folder (TAPTR_WEIGHTS_DIR, default ~/.cache/taptr/weights; "
-        "needs pip install 'taptr[drive]'). Each licence is said before its download; a "
+        "needs the drive extra). Each licence is said before its download; a "
         "file that is not the weights its name promises is refused. Prints each file's path.",
     )
     parser.add_argument("names", nargs="+", metavar="NAME", help="weights to fetch")

@@ -14,7 +14,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "smooth warps (camera homographies, moving cut-outs) behind a sweeping occluder, with "
         "exact tracks and occlusion, in TAP-Vid DAVIS format: score a tracker with 'taptr eval "
         "--dataset davis --root OUT'. The default photographs are the held-out split of "
-        "taptr's built-in set (pip install 'taptr[photos]'), never used by 'make-synthetic "
+        "taptr's built-in set (the photos extra), never used by 'make-synthetic "
         "--textures builtin'. Video i depends only on (--seed, i) and the photographs.",
     )
     parser.add_argument("--out", required=True, help="the pickle file to write")

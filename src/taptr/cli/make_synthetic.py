@@ -24,7 +24,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "--textures",
         metavar="DIR|builtin",
         help="texture layers with real photographs: a folder of images, or 'builtin' for the "
-        "training split of taptr's built-in set (needs pip install 'taptr[photos]'; see "
+        "training split of taptr's built-in set (needs the photos extra; see "
         "taptr.data.photos). Tracks and occlusions stay exact",
     )
     parser.add_argument(

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from types import ModuleType
 from typing import TYPE_CHECKING, Any
 
-from taptr.messages import error_line
+from taptr.messages import error_line, install_line
 
 if TYPE_CHECKING:
     from taptr.corpus.model_facts import ModelFacts
@@ -62,10 +62,7 @@ def require_ray() -> ModuleType:
         import pyarrow  # noqa: F401
         import ray
     except ModuleNotFoundError:
-        raise ModuleNotFoundError(
-            'tracking a corpus needs Ray: pip install -e ".[ray]" in a checkout of taptr '
-            '(pip install "taptr[ray]" once taptr is on the package index)'
-        ) from None
+        raise ModuleNotFoundError(f"tracking a corpus needs Ray: {install_line('ray')}") from None
     return ray
 
 

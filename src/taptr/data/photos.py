@@ -1,7 +1,7 @@
 """Real photographs as textures: the built-in licence-clean set, user folders, random crops.
 
 taptr ships no photographs. The built-in set is read at data-generation time from files
-that PyPI packages install (``pip install 'taptr[photos]'``); each file is located with
+that PyPI packages install (the ``photos`` extra); each file is located with
 `importlib.util.find_spec`, so the packages are never imported. The set is split once, here,
 into photographs for **training** data (`taptr make-synthetic --textures builtin`) and a
 disjoint **held-out** set for validation (`taptr make-photo-bench`), so a model is never
@@ -32,6 +32,8 @@ from typing import Literal
 
 import cv2
 import numpy as np
+
+from taptr.messages import install_line
 
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".webp", ".tif", ".tiff")
 """File types `load_photo_folder` reads."""
@@ -86,8 +88,6 @@ BUILTIN_PHOTOS: tuple[PhotoSource, ...] = (
 )
 """The built-in photographs; the split is fixed here and documented in the module docstring."""
 
-PACKAGE_HINT = "pip install 'taptr[photos]' (scikit-learn and matplotlib)"
-
 
 def builtin_sources(split: Literal["train", "heldout"]) -> tuple[PhotoSource, ...]:
     """The built-in photographs of one split (the two splits share no photograph)."""
@@ -107,7 +107,7 @@ def find_photo(source: PhotoSource) -> Path:
     if spec is None or not spec.submodule_search_locations:
         raise ModuleNotFoundError(
             f"the built-in photograph {source.name!r} comes with the {source.package!r} "
-            f"package, which is not installed: {PACKAGE_HINT}"
+            f"package, which is not installed: {install_line('photos')}"
         )
     for folder in spec.submodule_search_locations:
         path = Path(folder) / source.path

@@ -15,6 +15,8 @@ from typing import Any
 
 import torch
 
+from taptr.messages import install_line
+
 ONNX_OPSET = 18
 """The dynamo exporter's opset; GridSample needs 16 or later."""
 
@@ -48,7 +50,7 @@ def require_onnx_exporter() -> None:
         import onnxscript  # noqa: F401
     except ImportError:
         raise ModuleNotFoundError(
-            "ONNX export needs onnx and onnxscript: pip install 'taptr[export]'"
+            f"ONNX export needs onnx and onnxscript: {install_line('export')}"
         ) from None
 
 

@@ -29,6 +29,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from taptr.messages import install_line
 from taptr.onnx.export_files import require_regular
 from taptr.onnx.v3_manifest import V3Manifest
 from taptr.onnx.v3_tensors import GRAPHS
@@ -107,7 +108,7 @@ def engine_module(engine: GraphEngine) -> Any:
         return importlib.import_module(engine.package)
     except ImportError:
         raise ModuleNotFoundError(
-            f"the {engine.name} engine needs {engine.package}: pip install 'taptr[{engine.extra}]'"
+            f"the {engine.name} engine needs {engine.package}: {install_line(engine.extra)}"
         ) from None
 
 

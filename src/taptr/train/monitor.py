@@ -1,6 +1,6 @@
 """Progress reporting of rank 0: console lines through `logging`, and TensorBoard scalars.
 
-TensorBoard is optional (``pip install 'taptr[train]'``); without it the run logs to the
+TensorBoard is optional (the ``train`` extra); without it the run logs to the
 console only, after one warning.
 """
 
@@ -12,6 +12,8 @@ from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
+from taptr.messages import install_line
+
 logger = logging.getLogger(__name__)
 
 
@@ -21,7 +23,7 @@ def summary_writer(log_dir: Path) -> Any | None:
         from torch.utils.tensorboard import SummaryWriter
     except ImportError:
         logger.warning(
-            "tensorboard is not installed (pip install 'taptr[train]'): logging to the console only"
+            "tensorboard is not installed (%s): logging to the console only", install_line("train")
         )
         return None
     return SummaryWriter(str(log_dir))

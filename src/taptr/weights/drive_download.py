@@ -32,6 +32,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from taptr.io.atomic import atomic_path
+from taptr.messages import install_line
 from taptr.weights import transfer
 
 logger = logging.getLogger(__name__)
@@ -51,7 +52,6 @@ CHUNK_BYTES = 512 * 1024
 MAX_PAGE_BYTES = 1024**2
 """Largest confirmation page read: Drive's are a few kilobytes."""
 
-INSTALL = "pip install 'taptr[drive]'"
 """What installs the downloader (gdown)."""
 
 _TRUE = {"1", "on", "yes", "true"}
@@ -122,7 +122,7 @@ def fetch(
     try:
         import gdown
     except ImportError:
-        raise DriveError(f"gdown is not installed ({INSTALL})") from None
+        raise DriveError(f"gdown is not installed ({install_line('drive')})") from None
     seconds = transfer.answer_seconds(PROBE_TIMEOUT)
     address = _answer(f"{base_url()}/uc?export=download&id={file_id(url)}", seconds)
     announce()

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from taptr.messages import install_line
 from taptr.weights import transfer
 from taptr.weights.checkpoint import CheckpointError
 from taptr.weights.drive import IDEA_LICENCE, kept_problem, release_bytes, set_aside
@@ -128,7 +129,7 @@ def weights_path(name: str, *, cache_dir: str | os.PathLike[str] | None = None) 
         FileNotFoundError: not cached and offline (or the Hub could not be reached, or the
             download failed, was too slow or too large); says which file to download and
             where to put it.
-        ModuleNotFoundError: ``huggingface_hub`` is missing (``pip install 'taptr[hub]'``).
+        ModuleNotFoundError: ``huggingface_hub`` is missing (the ``hub`` extra).
         CheckpointError: the file does not have its SHA-256.
     """
     entry = WEIGHTS[name]
@@ -136,7 +137,7 @@ def weights_path(name: str, *, cache_dir: str | os.PathLike[str] | None = None) 
         from huggingface_hub import constants
     except ImportError:
         raise ModuleNotFoundError(
-            f"{name} is fetched with huggingface_hub: pip install 'taptr[hub]', or download "
+            f"{name} is fetched with huggingface_hub: {install_line('hub')}, or download "
             f"{entry.url} yourself and pass the file's path"
         ) from None
     cache = Path(cache_dir) if cache_dir is not None else None

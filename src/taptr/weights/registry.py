@@ -9,11 +9,11 @@ this order:
    (``HF_HUB_OFFLINE=1``) never touches the network, and a download is checked against a
    SHA-256 (the registry's when set, else the Hub's own for large files);
 3. the name of weights the authors host on Google Drive (`MANUAL`: TAPTRv3's two
-   checkpoints, `taptr.weights.drive`): read from the weights folder (``TAPTR_WEIGHTS_DIR``, default
-   ``~/.cache/taptr/weights``); when missing, downloaded once into it through ``gdown`` (``pip
-   install 'taptr[drive]'``, `taptr.weights.drive_download`) after a one-line notice of their
-   licence, and checked before they are kept; without gdown or network, one message with the link,
-   the licence and where to put the file;
+   checkpoints, `taptr.weights.drive`): read from the weights folder
+   (``TAPTR_WEIGHTS_DIR``, default ``~/.cache/taptr/weights``); when missing, downloaded
+   once into it through ``gdown`` (the ``drive`` extra, `taptr.weights.drive_download`)
+   after a one-line notice of their licence, and checked before they are kept; without
+   gdown or network, one message with the link, the licence and where to put the file;
 4. the name of weights that ship inside the package (`BUNDLED`);
 5. a preset name: the architecture with freshly initialised, untrained weights (a warning
    says so).
