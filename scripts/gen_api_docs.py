@@ -29,7 +29,7 @@ SECTIONS = {
         "taptr.api.predictor",
         "taptr.api.online",
         "taptr.api.streaming",
-        "taptr.api.context",
+        "taptr.api.context_points",
         "taptr.api.resize",
         "taptr.api.regions",
         "taptr.types",

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 import taptr
-from taptr.api.context import ContextPoints, draw_context, padding_bounds, with_context
+from taptr.api.context_points import ContextPoints, draw_context, padding_bounds, with_context
 from taptr.api.online import OnlineTracker
 from taptr.config import ModelConfig, get_config
 from taptr.eval.official_protocol import official_padding

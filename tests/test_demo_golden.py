@@ -18,7 +18,7 @@ import pytest
 import torch
 
 from taptr import Predictor
-from taptr.api.context import draw_context, with_context
+from taptr.api.context_points import draw_context, with_context
 from taptr.api.resize import lanczos_resize
 from taptr.geometry import pixels_to_normalized
 from taptr.model.taptr import normalize_frames

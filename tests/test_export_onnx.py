@@ -12,8 +12,8 @@ import pytest
 import torch
 
 from taptr.config import tiny
-from taptr.export.backends import OnnxSteps
 from taptr.export.graph_runner import track_points
+from taptr.export.graph_steps import OnnxSteps
 from taptr.export.graphs import _wrappers, export_model, prepare_for_export
 from taptr.export.manifest import GRAPHS, ExportManifest
 from taptr.export.verify import sample_frames, torch_tracks

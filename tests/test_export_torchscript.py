@@ -10,8 +10,8 @@ from taptr.api.predictor import Predictor
 from taptr.cli.main import main
 from taptr.config import tiny
 from taptr.data.sample_video import make_sample_clip
-from taptr.export.backends import TorchScriptSteps, load_steps
 from taptr.export.graph_runner import track_points
+from taptr.export.graph_steps import TorchScriptSteps, load_steps
 from taptr.export.graphs import _wrappers, export_model, prepare_for_export
 from taptr.export.manifest import GRAPHS, ExportManifest
 from taptr.export.track_video import track_video

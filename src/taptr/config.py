@@ -213,7 +213,7 @@ class ModelConfig:
             (TAPTRv2-SPEC §6: points attend to each other in every decoder layer, so a
             handful of points alone is out of the training distribution); 0 adds none.
             Read with ``support_points="random"`` only.
-        support_points: how the predictor surrounds the user's points (`taptr.api.context`):
+        support_points: how the predictor surrounds the user's points (`taptr.api.context_points`):
             ``"random"`` pads to ``context_points`` seeded random points (TAPTRv2's
             evaluation and demo); ``"local_and_grid"`` adds 63 static points around each
             query and a 6 × 6 grid (TAPTRv3's evaluation); ``"grid"`` the grid only;

@@ -1,7 +1,7 @@
 """The sliding-window rules, in plain Python (no torch), shared by every window loop.
 
 The one window driver (`taptr.model.sliding_window`) reads them for the model and for exported
-graphs alike (`taptr.export.graph_runner` is a backend of that driver); the export manifest
+graphs alike (`taptr.export.graph_runner` puts them behind that driver); the export manifest
 writes them down, without torch, for loops written in other languages.
 """
 

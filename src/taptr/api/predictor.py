@@ -25,7 +25,7 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 from taptr.api.backward import needs_backward, track_both_ways
-from taptr.api.context import with_context
+from taptr.api.context_points import with_context
 from taptr.api.inputs import grid_queries, query_tensor, video_tensor
 from taptr.api.prepared_frames import PreparedFrames
 from taptr.api.queries import model_queries, on_own_frames
@@ -86,7 +86,7 @@ class Predictor:
             on a CPU (slow there) nothing is timed and ``auto`` is one frame per call.
             The memory of the smallest run at the input size is checked before any timing.
         context_points: pad each video's queries with seeded context points up to this
-            many points before the model runs (`taptr.api.context`); they are never
+            many points before the model runs (`taptr.api.context_points`); they are never
             returned. Default: the model config's (800 for the paper's weights, the points
             per training clip for models trained by taptr); 0 turns it off.
         support_points: how the user's points are surrounded before the model runs, never

@@ -72,7 +72,7 @@ def with_support(queries: QuerySet, scheme: str) -> QuerySet:
     Args:
         queries: the real points, (B, N, ·) in model units.
         scheme: a registered scheme whose points are not drawn per video (not ``random``,
-            `taptr.api.context`).
+            `taptr.api.context_points`).
 
     Returns:
         (B, N + K, ·) queries: the scheme's points after each video's real points, static
@@ -83,7 +83,7 @@ def with_support(queries: QuerySet, scheme: str) -> QuerySet:
     """
     chosen = support_scheme(scheme, "support scheme")
     if chosen.drawn:
-        raise ValueError(f"the {scheme!r} support is drawn per video: use taptr.api.context")
+        raise ValueError(f"the {scheme!r} support is drawn per video: use taptr.api.context_points")
     pattern = pattern_for(queries)
     padded = [
         scheme_points(QuerySet(*(column[b : b + 1] for column in queries)), chosen, pattern)[0]

@@ -38,7 +38,7 @@ import torch
 import torch.nn.functional as F
 
 from taptr.api import TAPTR, normalize_frames
-from taptr.api.context import PREFIX_FRAMES, ContextPoints, draw_context
+from taptr.api.context_points import PREFIX_FRAMES, ContextPoints, draw_context
 from taptr.eval.query_sampling import QueryPoints
 from taptr.eval.trackers import query_frames, track_both_ways
 from taptr.geometry import normalized_to_pixels, pixels_to_normalized
@@ -63,7 +63,7 @@ def official_padding(
 ) -> ContextPoints:
     """The evaluation's padding of n real points to ``num_queries`` (TAPTRv2-SPEC.md §4.2).
 
-    `taptr.api.context.draw_context` on the 256 × 256 frame with start frames drawn from
+    `taptr.api.context_points.draw_context` on the 256 × 256 frame with start frames drawn from
     [0, 12). The official code fails on videos shorter than 12 frames, where a point can be
     occluded on every frame; here start frames are capped at T − 1, so each point is visible
     on its last frame at least. Videos of 12 frames or more get exactly the official padding.

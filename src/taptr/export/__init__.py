@@ -10,7 +10,7 @@ them against the model. Running a TAPTRv3 export needs no torch and lives in
 - `OnnxTracker(directory)` and `OnnxOnlineTracker` are `taptr.onnx`'s: whole videos and
   streams over a TAPTRv3 export in numpy, with onnxruntime or OpenVINO, without torch;
 - `track_points(steps, manifest, frames, ...)` tracks with them through the model's own
-  sliding-window driver (`taptr.export.graph_runner`, whose `GraphBackend` adapts the graphs to
+  sliding-window driver (`taptr.export.graph_runner`, whose `GraphNetwork` adapts the graphs to
   `taptr.model.sliding_window`), with `load_steps(directory)` for the graphs, and `track_video`
   the same in input pixels with (t, x, y) queries (`taptr.export.track_video`);
 - `compare(model, directory)` checks an export against the model (`taptr.export.verify`).
@@ -29,11 +29,11 @@ _EXPORTS = {
     "ExportManifest": "taptr.export.manifest",
     "track_points": "taptr.export.graph_runner",
     "TrackArrays": "taptr.task.results",
-    "GraphBackend": "taptr.export.graph_runner",
+    "GraphNetwork": "taptr.export.graph_runner",
     "track_video": "taptr.export.track_video",
-    "load_steps": "taptr.export.backends",
-    "OnnxSteps": "taptr.export.backends",
-    "TorchScriptSteps": "taptr.export.backends",
+    "load_steps": "taptr.export.graph_steps",
+    "OnnxSteps": "taptr.export.graph_steps",
+    "TorchScriptSteps": "taptr.export.graph_steps",
     "compare": "taptr.export.verify",
     "export_v3": "taptr.export.v3_graphs",
 }

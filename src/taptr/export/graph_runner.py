@@ -1,8 +1,8 @@
 """Tracking with exported graphs, driven by the PyTorch model's own window driver.
 
 The graphs hold the network; the sliding-window rules are not repeated here.
-`GraphBackend` puts a `Steps` (the three graphs, numpy in and out, `taptr.export.backends`)
-behind `taptr.model.sliding_window.WindowBackend`, converting numpy ↔ torch at the boundary, and
+`GraphNetwork` puts a `Steps` (the three graphs, numpy in and out, `taptr.export.graph_steps`)
+behind `taptr.model.sliding_window.WindowNetwork`, converting numpy ↔ torch at the boundary, and
 `GraphFrames` encodes frames through the encoder graph; `track_points` hands both to
 `taptr.model.sliding_window.run_windows`, so exported graphs and PyTorch model decode the same
 windows by the same code. The rules, for porting the loop to another language, are
@@ -62,8 +62,8 @@ def _to_torch(array: np.ndarray) -> Tensor:
     return torch.from_numpy(np.asarray(array))[None]
 
 
-class GraphBackend:
-    """The exported graphs as the window driver's backend (batch one, float32 on the CPU).
+class GraphNetwork:
+    """The exported graphs as the window driver's network (batch one, float32 on the CPU).
 
     What the graphs give differs from the PyTorch module in three ways, all adapted here:
     ``init_points`` samples and projects in one call, so ``project_samples`` is the
@@ -72,7 +72,7 @@ class GraphBackend:
     same call, from the initial content it is given.
 
     Args:
-        steps: the graphs (`taptr.export.backends.load_steps`).
+        steps: the graphs (`taptr.export.graph_steps.load_steps`).
         manifest: the export's description (window rules, channels).
     """
 
@@ -110,7 +110,7 @@ class GraphBackend:
         tables: FrameTables | None = None,
         all_tracked: bool | None = None,
     ) -> WindowDecoding:
-        """The ``decode_window`` graph; shapes as in `taptr.model.sliding_window.WindowBackend`.
+        """The ``decode_window`` graph; shapes as in `taptr.model.sliding_window.WindowNetwork`.
 
         The graph projects every frame's keys and values itself and masks by ``tracking``,
         so ``tables`` and ``all_tracked`` are not read.
@@ -171,7 +171,7 @@ def track_points(
     """Tracks points through a whole video with exported graphs, window by window.
 
     Args:
-        steps: the graphs (`taptr.export.backends.load_steps`).
+        steps: the graphs (`taptr.export.graph_steps.load_steps`).
         manifest: the export's description (window rules, channels).
         frames: (T, 3, H, W) float32 RGB in [0, 1] at ``manifest.input_size``, or a
             function returning frames first..last (inclusive) as (F, 3, H, W).
@@ -202,9 +202,9 @@ def track_points(
         torch.from_numpy(np.asarray(positions, np.float32))[None],
         torch.from_numpy(np.asarray(visible, bool))[None],
     )
-    backend = GraphBackend(steps, manifest)
+    network = GraphNetwork(steps, manifest)
     with torch.no_grad():
         output = run_windows(
-            backend, queries, num_frames, GraphFrames(steps, manifest, load), torch.float32
+            network, queries, num_frames, GraphFrames(steps, manifest, load), torch.float32
         )
     return TrackArrays(output.positions[0].numpy(), output.visibility_logits[0].numpy())

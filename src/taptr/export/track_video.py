@@ -41,7 +41,7 @@ def track_video(
     """Tracks (t, x, y) pixel queries through a uint8 video with exported graphs.
 
     Args:
-        steps: the graphs (`taptr.export.backends.load_steps`).
+        steps: the graphs (`taptr.export.graph_steps.load_steps`).
         manifest: the export's description.
         video: (T, H, W, 3) uint8 RGB frames, any size.
         queries: (N, 3) as (t, x, y): frame index and pixel position (pixel centres at

@@ -18,8 +18,8 @@ import numpy as np
 import torch
 
 from taptr.data.sample_video import make_sample_clip
-from taptr.export.backends import load_steps
 from taptr.export.graph_runner import track_points
+from taptr.export.graph_steps import load_steps
 from taptr.export.manifest import ExportManifest
 from taptr.model.taptr import TAPTR, normalize_frames
 from taptr.model.trajectory import QuerySet

@@ -12,9 +12,9 @@ value for all frames not yet reached. Encoded frames are requested from a `Frame
 window by window (`taptr.model.frame_source`), so memory is bounded by the window, not the
 video.
 
-The network itself is reached through a `WindowBackend`: the PyTorch `TAPTR` module (as
-`ModelBackend`, which every function here applies to a `TAPTR` it is given) or the exported
-graphs (`taptr.export.graph_runner.GraphBackend`), so both run exactly these rules.
+The network itself is reached through a `WindowNetwork`: the PyTorch `TAPTR` module (as
+`TorchNetwork`, which every function here applies to a `TAPTR` it is given) or the exported
+graphs (`taptr.export.graph_runner.GraphNetwork`), so both run exactly these rules.
 """
 
 from __future__ import annotations
@@ -48,7 +48,7 @@ class WindowDecoding(NamedTuple):
     """One decoded window, before the write-back masks.
 
     Attributes:
-        positions: (D_l, B, W_t, N, 4) position logits after each layer the backend reports.
+        positions: (D_l, B, W_t, N, 4) position logits after each layer the network reports.
         visibility_logits: (D_l, B, W_t, N, 3) (channel 1 = visible).
         updated_positions: (D_l, B, W_t, N, 4) APU-updated logits, or None.
         next_content: (B, W_t, N, C) content handed to the next window.
@@ -60,11 +60,11 @@ class WindowDecoding(NamedTuple):
     next_content: Tensor
 
 
-class WindowBackend(Protocol):
+class WindowNetwork(Protocol):
     """What the driver asks of whatever runs the network.
 
     Point content is built in two steps so that samples from several start frames can be
-    merged before one projection (``project_samples`` acts row by row); a backend that
+    merged before one projection (``project_samples`` acts row by row); a network that
     cannot split them returns the content from ``sample_points`` and projects with the
     identity. Decoding and the content hand-over are one step, given the initial content,
     because the exported decoder graph computes both in one call.
@@ -123,15 +123,15 @@ class WindowBackend(Protocol):
             tracking: (B, W_t, N) bool, entries at or after each point's start frame.
             update: (B, W_t, N) bool, tracking entries after the start frame.
             tables: the run's store of per-frame key and value tables, started for this
-                window (`taptr.model.frame_tables`); a backend may ignore it.
+                window (`taptr.model.frame_tables`); a network may ignore it.
             all_tracked: every entry of ``tracking`` is set, as the host knows without
-                asking the device; None to read it. A backend may ignore it.
+                asking the device; None to read it. A network may ignore it.
         """
         ...
 
 
-class ModelBackend:
-    """`WindowBackend` over the PyTorch `TAPTR` module, through its public methods.
+class TorchNetwork:
+    """`WindowNetwork` over the PyTorch `TAPTR` module, through its public methods.
 
     Its facts are read when it is made; the driver makes one per call.
     """
@@ -174,7 +174,7 @@ class ModelBackend:
         tables: FrameTables | None = None,
         all_tracked: bool | None = None,
     ) -> WindowDecoding:
-        """`TAPTR.decode_window` then `TAPTR.update_content` (as `WindowBackend`)."""
+        """`TAPTR.decode_window` then `TAPTR.update_content` (as `WindowNetwork`)."""
         decoded = self.model.decode_window(
             memory, spatial_shapes, content, positions, tracking, update, tables, all_tracked
         )
@@ -185,23 +185,23 @@ class ModelBackend:
         )
 
 
-def as_backend(model: TAPTR | WindowBackend) -> WindowBackend:
-    """The backend of ``model``: a `ModelBackend` around a `TAPTR`, any other as it is."""
-    return ModelBackend(model) if isinstance(model, TAPTR) else model
+def as_network(model: TAPTR | WindowNetwork) -> WindowNetwork:
+    """The network of ``model``: a `TorchNetwork` around a `TAPTR`, any other as it is."""
+    return TorchNetwork(model) if isinstance(model, TAPTR) else model
 
 
 def start_state(
-    model: TAPTR | WindowBackend, queries: QuerySet, num_frames: int | None, dtype: torch.dtype
+    model: TAPTR | WindowNetwork, queries: QuerySet, num_frames: int | None, dtype: torch.dtype
 ) -> TrackerState:
     """The state before the first window: every point at its query, visibility one-hot."""
-    backend = as_backend(model)
+    network = as_network(model)
     batch, points = queries.start_frames.shape
-    channels = backend.content_channels
+    channels = network.content_channels
     device = queries.positions.device
     xy_logit = inverse_sigmoid(queries.positions.to(dtype))
     position = torch.cat((xy_logit, xy_logit.new_zeros(batch, points, 2)), dim=-1)  # (B, N, 4)
     one_hot = F.one_hot(torch.where(queries.start_visible, 1, 2), 3).to(torch.float32)
-    layers = backend.num_layers
+    layers = network.num_layers
     return TrackerState(
         queries=queries,
         num_frames=num_frames,
@@ -211,13 +211,13 @@ def start_state(
         positions=[Trajectory(position) for _ in range(layers)],
         visibility=[Trajectory(one_hot) for _ in range(layers)],
         updated_positions=(
-            [Trajectory(position) for _ in range(layers)] if backend.has_position_update else []
+            [Trajectory(position) for _ in range(layers)] if network.has_position_update else []
         ),
         start_frames=distinct_starts(queries),
     )
 
 
-def add_points(model: TAPTR | WindowBackend, state: TrackerState, queries: QuerySet) -> None:
+def add_points(model: TAPTR | WindowNetwork, state: TrackerState, queries: QuerySet) -> None:
     """Appends points to a running state; they start untracked and join at their start frame.
 
     Exact with respect to tracking them from the beginning as long as no window containing
@@ -243,7 +243,7 @@ def add_points(model: TAPTR | WindowBackend, state: TrackerState, queries: Query
 
 
 def initialise_points(
-    backend: WindowBackend,
+    network: WindowNetwork,
     state: TrackerState,
     features: FrameFeatures,
     first: int,
@@ -252,7 +252,7 @@ def initialise_points(
     """Builds the content of points not yet initialised whose content frame is in the window.
 
     Args:
-        backend: runs the query initialiser.
+        network: runs the query initialiser.
         state: the driver state (updated in place).
         features: memory (B, W_t, S, C) of the window's frames.
         first: first frame of the window.
@@ -275,7 +275,7 @@ def initialise_points(
     for offset in range(count):
         here = new & (starts == first + offset)
         if first + offset in frames:
-            frame_samples = backend.sample_points(
+            frame_samples = network.sample_points(
                 memory[:, offset], spatial_shapes, state.queries.positions
             )
             samples = (
@@ -284,14 +284,14 @@ def initialise_points(
                 else torch.where(here[..., None], frame_samples, samples)
             )
     assert samples is not None
-    content = backend.project_samples(samples)  # (B, N, C)
+    content = network.project_samples(samples)  # (B, N, C)
     state.initial_content = torch.where(new[..., None], content, state.initial_content)
     state.initialised = state.initialised | new
     state.content.fill(new, content)
 
 
 def decode_window(
-    model: TAPTR | WindowBackend,
+    model: TAPTR | WindowNetwork,
     state: TrackerState,
     first: int,
     last: int,
@@ -301,7 +301,7 @@ def decode_window(
     """Decodes frames first..last and updates ``state`` in place.
 
     Args:
-        model: the network, or another backend.
+        model: the PyTorch network, or another `WindowNetwork` (exported graphs).
         state: the driver state; ``state.next_window`` is the index of this window.
         first: first frame of the window.
         last: last frame of the window (inclusive).
@@ -312,14 +312,14 @@ def decode_window(
             tables of the frames from there on are kept for it. None (a stream) assumes
             the next window starts a stride later.
     """
-    backend = as_backend(model)
+    network = as_network(model)
     index = state.next_window
     state.next_window += 1
     content_frames = first_window_content_frames(
-        backend.memory_efficient, backend.training, index, last, state.queries.start_frames
+        network.memory_efficient, network.training, index, last, state.queries.start_frames
     )
     if content_frames is not None:  # TAPTR v1's memory-efficient mode
-        initialise_points(backend, state, frames_source(first, last), first, content_frames)
+        initialise_points(network, state, frames_source(first, last), first, content_frames)
     frames = torch.arange(first, last + 1, device=state.queries.start_frames.device)
     starts = state.queries.start_frames[:, None, :]  # (B, 1, N)
     tracking = frames[None, :, None] >= starts  # (B, W_t, N)
@@ -328,12 +328,12 @@ def decode_window(
         return  # the official code skips such windows entirely, padding included
 
     memory, spatial_shapes = frames_source(first, last)
-    initialise_points(backend, state, FrameFeatures(memory, spatial_shapes), first)
+    initialise_points(network, state, FrameFeatures(memory, spatial_shapes), first)
     content = state.content.read(first, last)
     # without a known next window, the next one normally starts a stride later
-    keep_from = first + backend.window_stride if next_first is None else next_first
+    keep_from = first + network.window_stride if next_first is None else next_first
     state.tables.start_window(first, last, keep_from=keep_from if keep_from <= last else None)
-    decoded = backend.decode_window(
+    decoded = network.decode_window(
         memory,
         spatial_shapes,
         content,
@@ -344,7 +344,7 @@ def decode_window(
         state.tables,
         all_tracked=state.start_frames[-1] <= first,
     )
-    for layer in range(backend.num_layers):
+    for layer in range(network.num_layers):
         state.positions[layer].write(first, decoded.positions[layer], update)
         state.visibility[layer].write(first, decoded.visibility_logits[layer].float(), update)
         state.positions[layer].pad_from(last)
@@ -354,13 +354,13 @@ def decode_window(
             state.updated_positions[layer].pad_from(last)
 
     state.content.write(first, decoded.next_content, torch.ones_like(update))
-    gap = content_padding_gap(state.num_frames, backend.long_video_frames, backend.training)
+    gap = content_padding_gap(state.num_frames, network.long_video_frames, network.training)
     if index % gap == 0:
         state.content.pad_from(last)
 
 
 def run_windows(
-    model: TAPTR | WindowBackend,
+    model: TAPTR | WindowNetwork,
     queries: QuerySet,
     num_frames: int,
     frames: FrameSource,
@@ -370,20 +370,20 @@ def run_windows(
     """Tracks the queries through a whole video, window by window.
 
     Args:
-        model: the network, or another backend (`WindowBackend`).
+        model: the PyTorch network, or another `WindowNetwork` (exported graphs).
         queries: points in model units.
         num_frames: video length T.
         frames: source of encoded frames for each window.
         dtype: floating dtype of the positions and content.
         on_window: called after each window (progress reporting).
     """
-    backend = as_backend(model)
-    state = start_state(backend, queries, num_frames, dtype)
-    ranges = window_ranges(num_frames, backend.window_size, backend.window_stride)
+    network = as_network(model)
+    state = start_state(network, queries, num_frames, dtype)
+    ranges = window_ranges(num_frames, network.window_size, network.window_stride)
     for (first, last), following in zip(
         ranges, ranges[1:] + [(num_frames, num_frames)], strict=True
     ):
-        decode_window(backend, state, first, last, frames, next_first=following[0])
+        decode_window(network, state, first, last, frames, next_first=following[0])
         state.content.release(before=following[0])  # content of earlier frames is never read again
         if on_window is not None:
             on_window()

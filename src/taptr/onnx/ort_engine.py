@@ -2,7 +2,7 @@
 
 `OnnxRuntimeGraphs` opens the three graphs of a TAPTRv3 export and implements
 `taptr.onnx.graph_engines.StepGraphs`; `open_sessions` serves TAPTR v1 and v2's window
-graphs too (`taptr.export.backends`). Execution providers come as named presets
+graphs too (`taptr.export.graph_steps`). Execution providers come as named presets
 (`PRESETS`), or as onnxruntime's own list:
 
 - ``cpu``: the CPU provider;

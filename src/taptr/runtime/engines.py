@@ -20,7 +20,7 @@ from torch import Tensor
 
 from taptr.config import check_history_frames
 from taptr.model.frame_source import FrameSource, Span
-from taptr.model.sliding_window import WindowBackend
+from taptr.model.sliding_window import WindowNetwork
 from taptr.model.taptr import TAPTR
 from taptr.model.trajectory import QuerySet, TrackOutput
 from taptr.model.v3.taptr import TAPTRv3
@@ -90,7 +90,7 @@ class Engine(Protocol):
 
 
 def engine_for(
-    model: TAPTR | WindowBackend,
+    model: TAPTR | WindowNetwork,
     dtype: torch.dtype = torch.float32,
     *,
     history_frames: int | None = None,
@@ -99,7 +99,7 @@ def engine_for(
     """The engine of ``model``'s family.
 
     Args:
-        model: the network (or a window backend, e.g. exported graphs).
+        model: the network (or a window network, e.g. exported graphs).
         dtype: floating dtype of the positions and content.
         history_frames: TAPTRv3: the most frames held per point (0: all); default the
             model's. Other models have no history.
@@ -120,7 +120,7 @@ def engine_for(
 
 
 def run_tracker(
-    model: TAPTR | WindowBackend,
+    model: TAPTR | WindowNetwork,
     queries: QuerySet,
     num_frames: int,
     frames: FrameSource,

@@ -12,7 +12,7 @@ from torch import Tensor
 
 from taptr.model.frame_source import FrameSource, Span
 from taptr.model.sliding_window import (
-    WindowBackend,
+    WindowNetwork,
     add_points,
     decode_window,
     keep_points,
@@ -26,16 +26,16 @@ from taptr.windows import window_ranges
 
 
 class WindowEngine:
-    """Runs a windowed model (a `TAPTR`, or another `WindowBackend` such as exported graphs).
+    """Runs a windowed model (a `TAPTR`, or another `WindowNetwork` such as exported graphs).
 
     Args:
-        model: the network or backend.
+        model: the PyTorch network or another `WindowNetwork`.
         dtype: floating dtype of the positions and content.
     """
 
     unit = "window"
 
-    def __init__(self, model: TAPTR | WindowBackend, dtype: torch.dtype) -> None:
+    def __init__(self, model: TAPTR | WindowNetwork, dtype: torch.dtype) -> None:
         self.model = model
         self.dtype = dtype
 

@@ -72,7 +72,7 @@ class StreamPoints:
             pattern: its numbers, in the unit and type of ``xy``.
             xy: (N, 2) the user points' positions in the model's units.
             caller_draws: the caller draws a ``drawn`` scheme's points itself
-                (`taptr.api.context`); without it, such a scheme's ``points`` says why it
+                (`taptr.api.context_points`); without it, such a scheme's ``points`` says why it
                 cannot be drawn here.
 
         Returns:

@@ -34,7 +34,7 @@ values) or the evaluation's 256 × 256 pixels in float64, so each caller gets ex
 its own arithmetic gave before this registry existed.
 
 ``random`` (TAPTRv2's seeded context points) is drawn per video from the model's input
-size by `taptr.api.context` (`SupportScheme.drawn`); its count and fallback are here.
+size by `taptr.api.context_points` (`SupportScheme.drawn`); its count and fallback are here.
 
 Shapes: N queries, K support points, L local offsets, G grid points.
 """
@@ -199,7 +199,7 @@ class SupportScheme:
         added: the same for points added to a stream after its support was drawn.
         fallback: the scheme used instead where ``fits`` says no.
         fits: (N, pattern) → whether N queries get this scheme.
-        drawn: its points are drawn per video by `taptr.api.context` (``random``), not by
+        drawn: its points are drawn per video by `taptr.api.context_points` (``random``), not by
             ``points``.
     """
 
@@ -217,7 +217,7 @@ def _random_points(starts: np.ndarray, xy: np.ndarray, pattern: SupportPattern) 
         return no_points(xy)
     raise ValueError(
         "this model pads its queries with random context points, drawn by "
-        "taptr.api.context, which needs torch: pass support_points='grid' or 'none'"
+        "taptr.api.context_points, which needs torch: pass support_points='grid' or 'none'"
     )
 
 

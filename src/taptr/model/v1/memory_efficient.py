@@ -21,7 +21,7 @@ def first_window_content_frames(
     to update.
 
     Args:
-        memory_efficient: the backend's mode.
+        memory_efficient: the memory-efficient mode of the window network.
         training: whether it is training.
         window_index: index of the window about to be decoded.
         last: its last frame (inclusive).

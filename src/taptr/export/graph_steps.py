@@ -1,7 +1,7 @@
 """Running exported graphs: onnxruntime sessions or TorchScript modules behind one interface.
 
 Both classes implement `taptr.export.graph_runner.Steps` (numpy in, numpy out), which
-`taptr.export.graph_runner.GraphBackend` puts under the model's own window driver, whichever the
+`taptr.export.graph_runner.GraphNetwork` puts under the model's own window driver, whichever the
 format. `load_steps` picks the class from the manifest.
 """
 
