@@ -65,6 +65,19 @@ def test_cli_reference_is_up_to_date():
     )
 
 
+def test_readme_names_every_command():
+    """The README's command table has one row per command of the parser, and no other."""
+    generator = _script("gen_cli_docs")
+    from taptr.cli.main import build_parser
+
+    commands = set(generator.subparsers(build_parser()))
+    rows = re.findall(r"^\| `taptr ([a-z-]+)", (REPO / "README.md").read_text(), re.MULTILINE)
+    assert sorted(rows) == sorted(commands), (
+        f"README's command table: missing {sorted(commands - set(rows))}, "
+        f"unknown or repeated {sorted(r for r in rows if rows.count(r) > 1 or r not in commands)}"
+    )
+
+
 def test_block_extraction_reads_markers():
     text = (
         "x\n<!-- skip-test: needs taptrv2.pth -->\n\n```python\na = 1\n```\n```python\nb = 2\n```\n"
