@@ -9,6 +9,9 @@ from __future__ import annotations
 import contextlib
 import os
 import socket
+import subprocess
+import sys
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -142,3 +145,32 @@ def _loopback(address: str) -> bool:
     ip = ipaddress.ip_address(address.split("%")[0])
     mapped = getattr(ip, "ipv4_mapped", None)
     return ip.is_loopback or (mapped is not None and mapped.is_loopback)
+
+
+@contextlib.contextmanager
+def s3_on_loopback(**environment: str) -> Iterator[str | None]:
+    """An S3-compatible server (moto) on a free loopback port; its URI parameters, or None.
+
+    ``environment`` goes to the server (``INITIAL_NO_AUTH_ACTION_COUNT="0"`` makes it check
+    credentials). None when the server did not start.
+    """
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    server = subprocess.Popen(
+        [sys.executable, "-m", "moto.server", "-p", str(port)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        env={**os.environ, **environment},
+    )
+    try:
+        for _ in range(100):
+            with contextlib.suppress(OSError):
+                socket.create_connection(("127.0.0.1", port), 0.2).close()
+                yield f"endpoint_override=127.0.0.1:{port}&scheme=http"
+                return
+            time.sleep(0.1)
+        yield None
+    finally:
+        server.terminate()
+        server.wait(timeout=10)

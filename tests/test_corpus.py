@@ -20,7 +20,6 @@ import json
 import os
 import re
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -32,7 +31,7 @@ import pytest
 import taptr
 from taptr.cli.main import main
 from taptr.io.video import read_video, write_video
-from tests.corpus_helpers import ray_sockets_beyond_loopback
+from tests.corpus_helpers import ray_sockets_beyond_loopback, s3_on_loopback
 from tests.helpers import panning_clip, write_truncated_clip
 
 pytest.importorskip("ray")
@@ -282,21 +281,8 @@ def s3_server(monkeypatch):
     pytest.importorskip("moto")
     import pyarrow.fs as pafs
 
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        port = probe.getsockname()[1]
-    server = subprocess.Popen(
-        [sys.executable, "-m", "moto.server", "-p", str(port)],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
-    try:
-        for _ in range(100):
-            with contextlib.suppress(OSError):
-                socket.create_connection(("127.0.0.1", port), 0.2).close()
-                break
-            time.sleep(0.1)
-        else:
+    with s3_on_loopback() as endpoint:
+        if endpoint is None:
             pytest.skip("the S3 server did not start")
         for name, value in (
             ("AWS_ACCESS_KEY_ID", "test"),
@@ -304,14 +290,10 @@ def s3_server(monkeypatch):
             ("AWS_DEFAULT_REGION", "us-east-1"),
         ):
             monkeypatch.setenv(name, value)
-        endpoint = f"endpoint_override=127.0.0.1:{port}&scheme=http"
         pafs.FileSystem.from_uri(f"s3://corpus?{endpoint}&allow_bucket_creation=true")[
             0
         ].create_dir("corpus")
         yield endpoint
-    finally:
-        server.terminate()
-        server.wait(timeout=10)
 
 
 def test_results_go_to_an_object_store(corpus, tiny_checkpoint, s3_server, quiet_ray):

@@ -21,7 +21,16 @@ import pytest
 from taptr.cli.main import main
 from taptr.corpus.inputs import CorpusVideo, QuerySpec
 from taptr.corpus.progress import Summary
-from tests.corpus_helpers import DIGEST, inside, prepared, snapshot, touched_paths, write_part
+from taptr.corpus.storage import AWS_CREDENTIAL_VARIABLES
+from tests.corpus_helpers import (
+    DIGEST,
+    inside,
+    prepared,
+    s3_on_loopback,
+    snapshot,
+    touched_paths,
+    write_part,
+)
 
 pa = pytest.importorskip("pyarrow")
 pq = pytest.importorskip("pyarrow.parquet")
@@ -297,6 +306,27 @@ def test_a_store_that_does_not_answer_is_a_user_error(tmp_path, capsys):
     assert "bug in taptr" not in error and error.count("\n") == 1
     assert "cannot use s3://bucket/res" in error and "Could not connect to server" in error
     assert time.perf_counter() - started < 60
+
+
+def test_missing_credentials_are_named_in_one_line(tmp_path, capsys, monkeypatch):
+    """The AWS SDK's bare INTERNAL_FAILURE for an S3 store without credentials gets a cause."""
+    pytest.importorskip("ray")
+    pytest.importorskip("moto")
+    for name in (*AWS_CREDENTIAL_VARIABLES, "AWS_SECRET_ACCESS_KEY", "AWS_SESSION_TOKEN"):
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setenv("HOME", str(tmp_path))  # no ~/.aws
+    monkeypatch.setenv("AWS_EC2_METADATA_DISABLED", "true")  # no metadata server to ask
+    clip = tmp_path / "clip.mp4"
+    clip.write_bytes(b"")
+    with s3_on_loopback(INITIAL_NO_AUTH_ACTION_COUNT="0") as endpoint:
+        if endpoint is None:
+            pytest.skip("the S3 server did not start")
+        out = f"s3://bucket/res?{endpoint}"
+        argv = ["track-corpus", str(clip), "--grid", "2", "--checkpoint", "tiny", "--out", out]
+        status, error = _track_corpus_exit(argv, capsys)
+    assert status == 2, error
+    assert "bug in taptr" not in error and error.count("\n") == 1
+    assert "no AWS credentials were found" in error and "cannot use s3://bucket/res" in error
 
 
 def test_an_unsupported_scheme_says_so_on_the_command_line(tmp_path, capsys):

@@ -238,7 +238,41 @@ class Storage:
         except OSError as error:
             if self.local:
                 raise
-            raise StoreError(f"cannot use {self.out}: {_clipped(error)}") from None
+            raise StoreError(
+                f"cannot use {self.out}: {_clipped(error)}{credentials_hint(self.out)}"
+            ) from None
+
+
+AWS_CREDENTIAL_VARIABLES = (
+    "AWS_ACCESS_KEY_ID",
+    "AWS_PROFILE",
+    "AWS_WEB_IDENTITY_TOKEN_FILE",
+    "AWS_CONTAINER_CREDENTIALS_RELATIVE_URI",
+    "AWS_CONTAINER_CREDENTIALS_FULL_URI",
+)
+"""Where the AWS SDK finds credentials before its files and the machine's metadata server."""
+
+
+def credentials_hint(out: str) -> str:
+    """A clause naming the missing credentials of an S3 URI, or "" where some may exist.
+
+    Without credentials the AWS SDK asks the machine's metadata server, then reports a bare
+    ``INTERNAL_FAILURE`` that never says credentials were missing.
+    """
+    if not out.lower().startswith("s3:") or "anonymous=true" in out.lower():
+        return ""
+    files = (
+        os.environ.get("AWS_SHARED_CREDENTIALS_FILE", "~/.aws/credentials"),
+        os.environ.get("AWS_CONFIG_FILE", "~/.aws/config"),
+    )
+    if any(os.environ.get(name) for name in AWS_CREDENTIAL_VARIABLES) or any(
+        os.path.isfile(os.path.expanduser(path)) for path in files
+    ):
+        return ""
+    return (
+        " (no AWS credentials were found in the environment or ~/.aws: set AWS_ACCESS_KEY_ID "
+        "and AWS_SECRET_ACCESS_KEY, or add anonymous=true to the URI for a public bucket)"
+    )
 
 
 def _open_uri(out: str, scheme: str) -> tuple[pafs.FileSystem, str]:
