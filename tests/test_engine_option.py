@@ -136,3 +136,16 @@ def test_the_spec_with_an_engine_pickles_and_keeps_the_corpus_digest():
     spec = ModelSpec("tiny-v3", engine="openvino", threads=2)
     assert pickle.loads(pickle.dumps(spec)) == spec
     assert "engine" in SPEED_ONLY  # the same tracks up to rounding: a corpus may switch
+
+
+def test_bench_times_the_engines_side_by_side(capsys):
+    argv = ["bench", "--preset", "tiny-v3", "--size", "48", "64", "--frames", "3"]
+    assert main([*argv, "--points", "4", "--threads", "1", "--engine", "torch", "onnxruntime"]) == 0
+    lines = [line for line in capsys.readouterr().out.splitlines() if "s/frame" in line]
+    assert [line.split()[1] for line in lines] == ["torch", "onnxruntime"]
+    assert "torch's time" in lines[1]
+
+
+def test_bench_refuses_engines_for_a_v2_preset(capsys):
+    assert main(["bench", "--preset", "tiny", "--engine", "onnxruntime"]) == 2
+    assert "TAPTRv3 presets" in capsys.readouterr().err
