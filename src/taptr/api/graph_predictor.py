@@ -16,7 +16,7 @@ one line. The graphs run on the CPU.
 from __future__ import annotations
 
 import inspect
-import os
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -27,6 +27,7 @@ if TYPE_CHECKING:
     import torch
 
     from taptr.api.spec import ModelSpec
+    from taptr.export.cache import ExportRequest
     from taptr.onnx.stream_tracker import OnnxOnlineTracker
     from taptr.onnx.video_tracker import OnnxTracker
     from taptr.task.support_schemes import SupportScheme
@@ -103,7 +104,9 @@ def load_graph_predictor(spec: ModelSpec) -> GraphPredictor:
     return GraphPredictor(tracker, spec, found, threshold)
 
 
-def _open_tracker(spec: ModelSpec, folder: os.PathLike, threshold: float, request) -> OnnxTracker:
+def _open_tracker(
+    spec: ModelSpec, folder: Path, threshold: float, request: ExportRequest
+) -> OnnxTracker:
     """The export's tracker; an entry the engine cannot open is exported again, once."""
     import importlib
 
@@ -114,7 +117,7 @@ def _open_tracker(spec: ModelSpec, folder: os.PathLike, threshold: float, reques
     module, name = engine_named(spec.engine).opener.split(":")
     options = engine_options(spec, getattr(importlib.import_module(module), name))
 
-    def opened(path: os.PathLike) -> OnnxTracker:
+    def opened(path: Path) -> OnnxTracker:
         return OnnxTracker(
             path,
             engine=spec.engine,

@@ -130,7 +130,8 @@ def export_entry(request: ExportRequest, key: dict[str, object], folder: Path, e
     began = time.perf_counter()
     staging = Path(tempfile.mkdtemp(prefix=f"{PREFIX}{os.getpid()}-", suffix=SUFFIX, dir=root))
     try:
-        export_v3(resolve_model(str(request.checkpoint)), staging, request.input_size)
+        model = resolve_model(str(request.checkpoint))  # TAPTRv3: the caller checked its config
+        export_v3(model, staging, request.input_size)  # type: ignore[arg-type]
         (staging / KEY_FILE).write_text(json.dumps(key, sort_keys=True) + "\n", encoding="utf-8")
         os.chmod(staging, 0o755)  # mkdtemp's 0700 would hide the entry from other users
         try:
