@@ -75,6 +75,14 @@ def test_an_engine_writes_torchs_tracks_and_settings(files, cache, torch_run, en
     assert settings == json.loads((torch_run / "settings.json").read_text())
 
 
+def test_the_streamed_backward_pass_matches_torch(files, cache):
+    assert track(files, "torch_backward", "--backward") == 0
+    assert track(files, "onnx_backward", "--backward", "--engine", "onnxruntime") == 0
+    expected = np.load(files[0] / "torch_backward" / "tracks.npz")["tracks"]
+    found = np.load(files[0] / "onnx_backward" / "tracks.npz")["tracks"]
+    np.testing.assert_allclose(found, expected, atol=2e-3)
+
+
 @pytest.mark.parametrize("backward", [False, True])
 def test_in_memory_and_backward_tracks_match_torch(files, cache, backward):
     from taptr.api.predictor import Predictor
@@ -128,6 +136,12 @@ def test_an_unknown_engine_is_refused(files, tmp_path, capfd):
         main(["track", str(files[2]), "--grid", "2", "--engine", "tensorflow"])
     assert exit.value.code == 2
     assert "--engine" in capfd.readouterr().err
+
+
+def test_a_gpu_is_refused_for_a_graph_engine(files, tmp_path, capfd):
+    argv = ["track", str(files[2]), "--grid", "2", "--engine", "openvino", "--device", "cuda"]
+    assert main([*argv, "--out", str(tmp_path / "out")]) == 2
+    assert "runs on the CPU" in capfd.readouterr().err
 
 
 def test_the_spec_with_an_engine_pickles_and_keeps_the_corpus_digest():

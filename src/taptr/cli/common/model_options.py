@@ -160,6 +160,8 @@ def check_model_arguments(args: argparse.Namespace) -> None:
     if args.threads is not None:
         check_at_least(args.threads, 1, "--threads")
     check_checkpoint_name(args.checkpoint)
+    if getattr(args, "engine", "torch") != "torch":
+        check_graph_device(args)
 
 
 def check_checkpoint_name(checkpoint: str | None, flag: str = "--checkpoint") -> None:
@@ -201,10 +203,8 @@ def load_predictor(args: argparse.Namespace) -> Predictor:
     A graph engine (``--engine onnxruntime``) gives a `taptr.api.graph_predictor.GraphPredictor`
     with the same surface.
     """
-    if getattr(args, "engine", "torch") != "torch":
-        check_graph_device(args)
-    else:
-        check_device(args.device)
+    if getattr(args, "engine", "torch") == "torch":
+        check_device(args.device)  # a graph engine's: checked with the other arguments
     return model_spec(args).load()
 
 
