@@ -14,6 +14,7 @@ import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -70,7 +71,9 @@ def run_engines(case: EngineCase) -> dict[str, float]:
     queries = np.concatenate([np.zeros((case.points, 1)), xy], 1).astype(np.float32)
     with tempfile.TemporaryDirectory(prefix="taptr-bench-") as folder:
         runs = _trackers(model, case, folder)
-        seconds = _in_turns({n: (lambda r=r: r(video, queries)) for n, r in runs.items()}, case)
+        seconds = _in_turns(
+            {name: partial(run, video, queries) for name, run in runs.items()}, case
+        )
     return {name: value / case.frames for name, value in seconds.items()}
 
 
