@@ -10,8 +10,8 @@ Recorded: the model (name or file, and the SHA-256 of the file its weights came 
 retrained checkpoint under the same name counts as another model), its visibility
 threshold, the queries (the grid, a digest of the listed points, or a digest of the mask
 file), and the options that change what is computed or written. Not recorded: where or
-how fast the model runs (device, kernel, frames per call, compile, capture), which give
-the same tracks up to rounding.
+how fast the model runs (device, engine, kernel, frames per call, compile, capture), which
+give the same tracks up to rounding.
 """
 
 from __future__ import annotations

@@ -12,6 +12,7 @@ from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
+    from taptr.api.graph_predictor import GraphPredictor
     from taptr.api.predictor import Predictor
 
 
@@ -35,7 +36,13 @@ class ModelSpec:
         capture: TAPTRv3's captured step: ``auto``, ``on`` or ``off``.
         compile: compile the model with ``torch.compile``.
         threads: CPU threads for products and convolutions; None: the free cores
-            (`taptr.runtime.threads.choose_threads`).
+            (`taptr.runtime.threads.choose_threads`). A graph engine gets them too
+            (onnxruntime's intra-op threads, OpenVINO's inference threads).
+        engine: what runs the tracker (`taptr.types.ENGINE_CHOICES`): ``torch``, or
+            TAPTRv3's exported graphs in ``onnxruntime`` or ``openvino``, exported once per
+            checkpoint and kept (`taptr.api.export_cache`); the same tracks up to float
+            rounding. The graph engines run on the CPU in ``dtype`` as the engine's
+            precision and ignore ``kernel``, ``frames_per_call``, ``capture`` and ``compile``.
     """
 
     checkpoint: str | None = None
@@ -50,13 +57,23 @@ class ModelSpec:
     capture: str = "auto"
     compile: bool = False
     threads: int | None = None
+    engine: str = "torch"
 
     def on(self, device: str | None) -> ModelSpec:
         """The same tracker on another device."""
         return replace(self, device=device)
 
-    def load(self) -> Predictor:
-        """The predictor this spec describes, built in this process."""
+    def load(self) -> Predictor | GraphPredictor:
+        """The predictor this spec describes, built in this process.
+
+        Raises:
+            ValueError: a graph engine asked for a TAPTR v1 or v2 checkpoint, or an
+                unknown engine.
+        """
+        if self.engine != "torch":
+            from taptr.api.graph_predictor import load_graph_predictor
+
+            return load_graph_predictor(self)
         from taptr.api.predictor import Predictor
         from taptr.runtime.precision import autocast_type
         from taptr.runtime.threads import use_threads

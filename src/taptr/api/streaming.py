@@ -72,7 +72,7 @@ def track_frames(
     first = next(source, None)
     if first is None:
         raise ValueError("the video has no frames")
-    online = OnlineTracker(predictor)
+    online = _online_tracker(predictor)
     state = online.start(num_frames=num_frames, frame_size=first.shape[:2])
     online.add_queries(state, queries)
     held: deque[np.ndarray] = deque()
@@ -148,6 +148,16 @@ def track_frames_both_ways(
         )
 
 
+def _online_tracker(predictor: Predictor) -> OnlineTracker:
+    """The predictor's own streaming tracker where it has one, else PyTorch's.
+
+    A graph engine's predictor has its own (`taptr.onnx.OnnxOnlineTracker`); both take the
+    same calls and return the same updates.
+    """
+    own = getattr(predictor, "online_tracker", None)
+    return own() if own is not None else OnlineTracker(predictor)
+
+
 def _empty_like(batch: FinalFrames, num_frames: int) -> dict[str, np.ndarray]:
     """Zeroed (T, ...) arrays shaped and typed like the per-frame results of ``batch``."""
     return {
@@ -166,9 +176,10 @@ def _final(update: StreamUpdate, held: deque[np.ndarray]) -> Iterator[FinalFrame
     yield FinalFrames(
         update.first_frame,
         frames,
-        update.tracks.numpy(),
-        update.visibility.numpy(),
-        update.visibility_logits.numpy(),
+        # CPU tensors from PyTorch's tracker, arrays from the graph engines'
+        np.asarray(update.tracks),
+        np.asarray(update.visibility),
+        np.asarray(update.visibility_logits),
     )
 
 

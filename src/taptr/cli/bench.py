@@ -100,8 +100,25 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="instead of timing, count the kernel-launching operations and host syncs each "
         "frame dispatches (in this process, with the CPU's row blocks off, as on a GPU, and on)",
     )
+    add_engines_argument(parser)
     parser.add_argument("--json", metavar="FILE", help="write all results to this JSON file")
     parser.set_defaults(func=run)
+
+
+def add_engines_argument(parser: argparse.ArgumentParser) -> None:
+    """``--engine``, several at once: whole videos through each, side by side."""
+    from taptr.types import ENGINE_CHOICES
+
+    parser.add_argument(
+        "--engine",
+        nargs="+",
+        choices=ENGINE_CHOICES,
+        default=None,
+        help="instead of the executions, time whole videos (Predictor.track, capture off, "
+        "against the torch-free tracker over the preset exported once) in each engine "
+        "named, in turns in one process, and print each with its time against torch's; "
+        "TAPTRv3 presets (e.g. --preset taptrv3 --engine torch onnxruntime openvino)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -112,6 +129,8 @@ def run(args: argparse.Namespace) -> int:
     command = "taptr " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     if args.count_ops:
         return count_ops(args, command)
+    if args.engine:
+        return bench_engines(args, command)
     if len(args.dtype) > 1 and args.execution == "both":
         raise ValueError("several --dtype values compare one --execution (fast or reference)")
     rows, cases = _run_cases(args)
@@ -284,6 +303,26 @@ def count_ops(args: argparse.Namespace, command: str) -> int:
     return 0
 
 
+def bench_engines(args: argparse.Namespace, command: str) -> int:
+    """``--engine``: each engine's seconds per frame on whole videos, printed."""
+    from taptr.apps.benchmark import machine, write_json
+    from taptr.apps.engine_bench import EngineCase, engine_lines, run_engines
+    from taptr.config import get_config
+
+    results = []
+    for preset, points in itertools.product(args.preset, args.points):
+        size = tuple(args.size or get_config(preset).input_size)
+        engines = tuple(dict.fromkeys(args.engine))
+        case = EngineCase(preset, args.frames, points, size, args.threads, engines)
+        seconds = run_engines(case)
+        print("\n".join(engine_lines(case, seconds)), flush=True)
+        results.append({"preset": preset, "points": points, "seconds_per_frame": seconds})
+    print(f"command: {command}")
+    if args.json:
+        write_json(args.json, {"command": command, "machine": machine(), "engines": results})
+    return 0
+
+
 def check_bench_arguments(args: argparse.Namespace) -> None:
     """Checks the options before the first measured process starts."""
     from taptr.config import PRESETS
@@ -316,8 +355,21 @@ def check_bench_arguments(args: argparse.Namespace) -> None:
         check_num_points(points, f"--points {points}")
     if args.json:
         check_output_file(args.json, "--json")
+    if args.engine:
+        check_engine_case(args)
     check_device(args.device)  # imports torch for a GPU: after the cheap checks
     check_bench_memory(args)
+
+
+def check_engine_case(args: argparse.Namespace) -> None:
+    """Refuses what ``--engine`` cannot compare: other presets, other devices and types."""
+    from taptr.config import get_config
+
+    others = [preset for preset in args.preset if get_config(preset).version != 3]
+    if others:
+        raise ValueError(f"--engine compares TAPTRv3 presets; {others[0]} is not one")
+    if args.device != "cpu" or args.dtype != ["float32"] or args.count_ops:
+        raise ValueError("--engine compares float32 on the CPU (no --device, --dtype, --count-ops)")
 
 
 def check_bench_memory(args: argparse.Namespace) -> None:

@@ -85,7 +85,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="track a video that decodes to fewer frames than its container declares (cut "
         "short or damaged) through the frames that decode; by default it is an error",
     )
-    add_model_arguments(parser)
+    add_model_arguments(parser, engines=True)
     parser.set_defaults(func=run)
 
 

@@ -49,7 +49,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     add_query_arguments(parser, required=False)
     _add_result_arguments(parser)
     _add_cluster_arguments(parser)
-    add_model_arguments(parser)
+    add_model_arguments(parser, engines=True)
     parser.set_defaults(func=run, trajectories=False)
 
 

@@ -66,6 +66,12 @@ def track_corpus(
     require_ray()  # before the checkpoint is read: say at once how to install it
     check_address(options.address)  # and that the cluster cannot be reached
     facts = model_facts(model)
+    if model.engine != "torch":  # exported here once, not by every actor at the same time
+        from taptr.export.cache import ExportRequest, cached_export
+
+        assert facts.checkpoint_path is not None  # model_facts refuses untrained presets
+        request = ExportRequest(facts.checkpoint_path, facts.source, facts.input_size)
+        cached_export(request, model.engine)
     settings = TrackSettings(options.max_frames, options.backward)
     digested = with_digests(list(videos), model, facts, settings)
     if options.memory_per_actor is None:

@@ -15,14 +15,14 @@ for the default).
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from taptr.api.spec import ModelSpec
 from taptr.config import SUPPORT_KINDS, check_history_frames
-from taptr.types import AUTOCAST_TYPES
+from taptr.types import AUTOCAST_TYPES, ENGINE_CHOICES
+from taptr.weights.checkpoint_facts import checkpoint_facts
 
 if TYPE_CHECKING:
     from taptr.config import ModelConfig
@@ -58,16 +58,6 @@ class ModelFacts:
     weight_bytes: int
 
 
-@dataclass(frozen=True)
-class _Found:
-    """A resolved name: what it is called, its file, config and stored threshold."""
-
-    name: str
-    path: Path | None
-    config: ModelConfig
-    threshold: float | None
-
-
 def check_spec(spec: ModelSpec) -> None:
     """Refuses a spec whose values no predictor takes, before any file is read.
 
@@ -76,6 +66,9 @@ def check_spec(spec: ModelSpec) -> None:
     """
     if spec.dtype not in AUTOCAST_TYPES:
         raise ValueError(f"dtype must be one of {', '.join(AUTOCAST_TYPES)}, got {spec.dtype!r}")
+    if spec.engine not in ENGINE_CHOICES:
+        names = ", ".join(ENGINE_CHOICES)
+        raise ValueError(f"engine must be one of {names}, got {spec.engine!r}")
     if spec.support is not None and spec.support not in SUPPORT_KINDS:
         kinds = ", ".join(SUPPORT_KINDS)
         raise ValueError(f"support must be one of {kinds} or None, got {spec.support!r}")
@@ -100,8 +93,12 @@ def model_facts(spec: ModelSpec) -> ModelFacts:
         CheckpointError: the file is not a checkpoint taptr loads.
     """
     check_spec(spec)
-    found = _resolve(spec.checkpoint)
+    found = checkpoint_facts(spec.checkpoint)
     config = found.config
+    if spec.engine != "torch":
+        from taptr.api.graph_predictor import check_exportable
+
+        check_exportable(spec, found)  # refused by the driver, before any actor starts
     if spec.history_frames is not None and config.version != 3:
         raise ValueError("history_frames applies to TAPTRv3 models only")  # as the runner says
     points = config.context_points if spec.context_points is None else spec.context_points
@@ -128,37 +125,3 @@ def parameter_bytes(config: ModelConfig) -> int:
     with torch.device("meta"):
         model = build_model(config)
     return sum(p.numel() * p.element_size() for p in model.parameters())
-
-
-def _resolve(name: str | None) -> _Found:
-    """The name's file and config, found as `taptr.weights.registry.load_model` finds them."""
-    from taptr.config import get_config
-    from taptr.weights.registry import resolve_weights
-
-    def untrained(asked: str, preset: str) -> _Found:
-        return _Found(asked, None, get_config(preset), None)
-
-    return resolve_weights(name, _from_file, untrained)[0]
-
-
-def _from_file(path: Path, name: str, preset: str | None = None) -> _Found:
-    """A checkpoint file's config and stored threshold, checked as loading checks them."""
-    from taptr.weights.checkpoint import (
-        CheckpointError,
-        check_architecture,
-        checkpoint_contents,
-        read_file,
-        read_visibility_threshold,
-    )
-    from taptr.weights.safe_checks import named_failures
-
-    with named_failures(path):
-        data = read_file(path)
-        if not isinstance(data, Mapping):
-            raise CheckpointError(f"{path} holds a {type(data).__name__}, not a checkpoint dict")
-        config, _ = checkpoint_contents(data, str(path))
-        if preset is not None:
-            check_architecture(config, path, name, preset)
-    calibrated = data.get("visibility_threshold") is not None
-    threshold = read_visibility_threshold(path) if calibrated else None
-    return _Found(name, path, config, threshold)

@@ -31,8 +31,13 @@ if TYPE_CHECKING:
 RECORDED = ("checkpoint", "dtype", "input_size", "context_points", "support", "history_frames")
 """`ModelSpec` fields `taptr.settings_record` records (as the predictor resolves them)."""
 
-SPEED_ONLY = ("device", "kernel", "frames_per_call", "capture", "compile", "threads")
-"""`ModelSpec` fields that change how fast a tracker runs, not its tracks (beyond rounding)."""
+SPEED_ONLY = ("device", "kernel", "frames_per_call", "capture", "compile", "threads", "engine")
+"""`ModelSpec` fields that change how fast a tracker runs, not its tracks (beyond rounding).
+
+The graph engines' tracks are PyTorch's to 2e-3 px and their logits to 3e-5 (docs/EXPORT.md,
+held by tests/test_export_v3_golden.py and tests/test_engine_option.py), as close as the
+kernels are to each other, so a corpus may go on in another engine without tracking again.
+"""
 
 
 @dataclass(frozen=True)

@@ -106,8 +106,11 @@ class TrackerWorker:
         self.stopping = False  # set by `stop` from the actor's second thread
 
     def load(self, model: ModelSpec) -> Predictor:
-        """The actor's predictor (benchmarks' stand-in loads none)."""
-        return model.load()
+        """The actor's predictor (benchmarks' stand-in loads none).
+
+        A graph engine's `taptr.api.graph_predictor.GraphPredictor` has the surface used here.
+        """
+        return model.load()  # type: ignore[return-value]
 
     def ready(self) -> str:
         """The actor's writer id (names its parts), once its model is loaded."""

@@ -57,6 +57,10 @@ def session_options(threads: int | None) -> Any:
     options = onnxruntime.SessionOptions()
     options.graph_optimization_level = onnxruntime.GraphOptimizationLevel.ORT_ENABLE_ALL
     options.add_session_config_entry("session.set_denormal_as_zero", "1")
+    # idle threads sleep unless the user asked OpenMP's pools to spin: spinning takes the
+    # cores other work on a shared machine wanted (taptr.runtime.threads has the numbers)
+    spin = os.environ.get("OMP_WAIT_POLICY", "").strip().upper() == "ACTIVE"
+    options.add_session_config_entry("session.intra_op.allow_spinning", "1" if spin else "0")
     if threads is not None:
         options.intra_op_num_threads = threads
         options.inter_op_num_threads = 1

@@ -19,7 +19,7 @@ from taptr.cli.common.options import (
     check_input_size,
 )
 from taptr.config import SUPPORT_KINDS, check_history_frames
-from taptr.types import AUTOCAST_TYPES, CAPTURE_CHOICES
+from taptr.types import AUTOCAST_TYPES, CAPTURE_CHOICES, ENGINE_CHOICES
 
 if TYPE_CHECKING:
     from taptr.api.predictor import Predictor
@@ -41,9 +41,17 @@ SUPPORT_CHOICES = ("auto", *SUPPORT_KINDS)
 """``--support`` choices: the model config's kinds and ``auto``."""
 
 
-def add_model_arguments(parser: argparse.ArgumentParser, max_frames: int | None = None) -> None:
-    """Options shared by the commands that run a model (``max_frames``: its default)."""
+def add_model_arguments(
+    parser: argparse.ArgumentParser, max_frames: int | None = None, engines: bool = False
+) -> None:
+    """Options shared by the commands that run a model (``max_frames``: its default).
+
+    ``engines``: the command also runs exported graphs (``--engine``; ``track`` and
+    ``track-corpus``); the others run PyTorch's model, whose modules they reach into.
+    """
     parser.add_argument("--checkpoint", default=None, help=CHECKPOINT_HELP)
+    if engines:
+        add_engine_argument(parser)
     add_device_argument(parser)
     parser.add_argument(
         "--context-points",
@@ -123,6 +131,20 @@ def add_model_arguments(parser: argparse.ArgumentParser, max_frames: int | None 
     )
 
 
+ENGINE_HELP = (
+    "what runs the model: torch, or TAPTRv3's exported graphs on the CPU in onnxruntime or "
+    "openvino (the checkpoint is exported once, a minute for the paper's model, into "
+    "$TAPTR_EXPORT_DIR or ~/.cache/taptr/exports and reused; the same tracks up to float "
+    "rounding; --threads is the engine's; docs/EXPORT.md) (default: torch)"
+)
+"""Help of ``--engine``."""
+
+
+def add_engine_argument(parser: argparse.ArgumentParser) -> None:
+    """``--engine``: PyTorch or a graph engine (`taptr.types.ENGINE_CHOICES`)."""
+    parser.add_argument("--engine", choices=ENGINE_CHOICES, default="torch", help=ENGINE_HELP)
+
+
 def check_model_arguments(args: argparse.Namespace) -> None:
     """Checks the options of `add_model_arguments` before any file is read, without torch.
 
@@ -138,6 +160,8 @@ def check_model_arguments(args: argparse.Namespace) -> None:
     if args.threads is not None:
         check_at_least(args.threads, 1, "--threads")
     check_checkpoint_name(args.checkpoint)
+    if getattr(args, "engine", "torch") != "torch":
+        check_graph_device(args)
 
 
 def check_checkpoint_name(checkpoint: str | None, flag: str = "--checkpoint") -> None:
@@ -169,10 +193,30 @@ def model_spec(args: argparse.Namespace) -> ModelSpec:
         capture=args.capture,
         compile=args.compile,
         threads=args.threads,
+        engine=getattr(args, "engine", "torch"),
     )
 
 
 def load_predictor(args: argparse.Namespace) -> Predictor:
-    """The predictor the model arguments describe (``--device`` is checked first)."""
-    check_device(args.device)
-    return model_spec(args).load()
+    """The predictor the model arguments describe (``--device`` is checked first).
+
+    A graph engine (``--engine onnxruntime``) gives a `taptr.api.graph_predictor.GraphPredictor`
+    with the same surface.
+    """
+    if getattr(args, "engine", "torch") == "torch":
+        check_device(args.device)  # a graph engine's: checked with the other arguments
+    # a GraphPredictor has the surface the commands use: typed as the one they were written for
+    return model_spec(args).load()  # type: ignore[return-value]
+
+
+def check_graph_device(args: argparse.Namespace) -> None:
+    """Refuses a GPU for a graph engine, which runs on the CPU.
+
+    Raises:
+        ValueError: ``--device`` names anything but the CPU.
+    """
+    if args.device not in (None, "cpu"):
+        raise ValueError(
+            f"--engine {args.engine} runs on the CPU; drop --device {args.device} or use "
+            "--engine torch"
+        )

@@ -49,9 +49,9 @@ def check_run_memory(
         taptr.memory_estimate.MemoryEstimateError: naming ``--input-size``, the points and
             ``--max-frames``.
     """
-    config = predictor.model.config
+    config = predictor.model.config if predictor.model is not None else None
     if config is None:
-        return
+        return  # a graph engine: its tracker checks its own memory (taptr.onnx.graph_memory)
     points = predictor.model_points(num_points)
     height, width = predictor.input_size
     estimate = estimate_tracking(
