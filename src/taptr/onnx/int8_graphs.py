@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
 import sys
 from pathlib import Path
@@ -158,18 +159,36 @@ def quantise(source: Path, target: Path, manifest: V3Manifest) -> None:
             f"int8 graphs need onnxruntime: {install_line('export')}"
         ) from None
     target.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(target) as path:
-        quantization.quantize_static(
-            str(source),
-            str(path),
-            _Frames(manifest),
-            quant_format=quantization.QuantFormat.QDQ,
-            op_types_to_quantize=RECIPE["ops"],
-            per_channel=True,
-            activation_type=quantization.QuantType.QUInt8,
-            weight_type=quantization.QuantType.QInt8,
-            calibrate_method=quantization.CalibrationMethod.MinMax,
-            nodes_to_exclude=_fed_by_concat(source),
-            extra_options={"WeightSymmetric": True, "ActivationSymmetric": False},
-            calibration_providers=["CPUExecutionProvider"],
-        )
+    previous = logging.root.manager.disable
+    # onnxruntime logs advice (pre-processing) on the root logger: not the user's concern
+    logging.disable(logging.WARNING)
+    try:
+        with atomic_path(target) as path:
+            _quantise_static(quantization, source, path, manifest)
+    finally:
+        logging.disable(previous)
+
+
+def _quantise_static(quantization: Any, source: Path, path: Path, manifest: V3Manifest) -> None:
+    """Onnxruntime's static quantisation of ``source`` into ``path`` by `RECIPE`."""
+    quantization.quantize_static(
+        str(source),
+        str(path),
+        _Frames(manifest),
+        quant_format=quantization.QuantFormat.QDQ,
+        op_types_to_quantize=RECIPE["ops"],
+        per_channel=True,
+        activation_type=quantization.QuantType.QUInt8,
+        weight_type=quantization.QuantType.QInt8,
+        calibrate_method=quantization.CalibrationMethod.MinMax,
+        nodes_to_exclude=_fed_by_concat(source),
+        # ranges folded in every 3 frames: a large encoder's every activation held for
+        # all 8 frames would take gigabytes (a multiple of the frame count leaves
+        # onnxruntime's last fold empty, which it reports as no data)
+        extra_options={
+            "WeightSymmetric": True,
+            "ActivationSymmetric": False,
+            "CalibMaxIntermediateOutputs": 3,
+        },
+        calibration_providers=["CPUExecutionProvider"],
+    )
