@@ -120,6 +120,37 @@ def test_a_damaged_entry_is_exported_again_in_one_line(files, cache, capfd):
     assert json.loads((entry / KEY_FILE).read_text())["format"] == 1
 
 
+def test_int8_runs_from_the_command_line_near_float32(files, cache, torch_run, capfd):
+    """``--dtype int8``: the encoder quantised once (said in one line), tracks near float32."""
+    assert track(files, "int8", "--engine", "onnxruntime", "--dtype", "int8") == 0
+    assert track(files, "int8_again", "--engine", "onnxruntime", "--dtype", "int8") == 0
+    made = [line for line in capfd.readouterr().err.splitlines() if "int8" in line]
+    assert len(made) == 1, made  # made by the first run only
+    expected = np.load(torch_run / "tracks.npz")["tracks"]
+    found = np.load(files[0] / "int8" / "tracks.npz")["tracks"]
+    assert np.abs(found - expected).mean() < 1.5  # pixels, on a 48 x 64 clip
+    settings = json.loads((files[0] / "int8" / "settings.json").read_text())
+    assert settings["dtype"] == "int8"
+
+
+@pytest.mark.parametrize(
+    ("extra", "named"),
+    [
+        (["--dtype", "int8"], "--engine onnxruntime"),
+        (["--engine", "onnxruntime", "--dtype", "float16"], "not float16"),
+        (["--engine", "onnxruntime", "--dtype", "bfloat16"], "engine='openvino'"),
+    ],
+)
+def test_a_precision_the_engine_does_not_run_is_one_line(files, cache, extra, named, capfd):
+    """Refused in one line, exit 2, and never taken for a damaged export."""
+    track(files, "warm", "--engine", "onnxruntime")  # the export exists
+    capfd.readouterr()
+    assert track(files, "refused", *extra) == 2
+    err = capfd.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and named in err[0], err
+    assert "damaged" not in err[0]
+
+
 def test_a_v2_checkpoint_is_refused_in_one_line(files, cache, tmp_path, capfd):
     import taptr
 

@@ -73,7 +73,7 @@ def test_openvino_tracks_as_onnxruntime_both_ways(graphs):
 
 @NEEDS_OPENVINO
 def test_openvino_options_are_checked(graphs):
-    with pytest.raises(ValueError, match="precision must be one of f32, bf16, f16"):
+    with pytest.raises(ValueError, match="precision must be one of float32, bfloat16, int8"):
         open_graphs(graphs, "openvino", precision="fp32")
     with pytest.raises(ValueError, match="cannot compile it for NPU9"):
         open_graphs(graphs, "openvino", device="NPU9")

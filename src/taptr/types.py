@@ -28,6 +28,10 @@ CAPTURE_CHOICES = ("auto", "on", "off")
 """Whether TAPTRv3's per-frame step is captured and replayed (`taptr.runtime.step_capture`):
 ``auto`` by measurement, ``on`` always, ``off`` never. Here, without torch, for the CLI."""
 
+DTYPE_CHOICES = (*AUTOCAST_TYPES, "int8")
+"""``--dtype``'s names: PyTorch's autocast types, and ``int8``, which only the graph engines
+run (`taptr.onnx.precisions`: the encoder quantised). Without torch, for the CLI."""
+
 ENGINE_CHOICES = ("torch", "onnxruntime", "openvino")
 """What runs a tracker (``--engine``): PyTorch, or TAPTRv3's exported graphs in one of
 the engines of `taptr.onnx.graph_engines` (exported once per checkpoint and kept)."""

@@ -15,7 +15,6 @@ one line. The graphs run on the CPU.
 
 from __future__ import annotations
 
-import inspect
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -62,22 +61,19 @@ def check_exportable(spec: ModelSpec, found: CheckpointFacts) -> None:
         )
 
 
-def engine_options(spec: ModelSpec, opener: Any) -> dict[str, Any]:
-    """The engine's options of ``spec``: its threads, and its precision where not float32.
+def engine_options(spec: ModelSpec) -> dict[str, Any]:
+    """The engine's options of ``spec``: its threads and its precision (``spec.dtype``).
 
     Raises:
-        ValueError: a precision the engine cannot be asked for.
+        ValueError: a precision no graph engine runs (`taptr.onnx.precisions`).
     """
+    from taptr.onnx.precisions import check_precision
     from taptr.runtime.threads import choose_threads
 
-    options: dict[str, Any] = {"threads": choose_threads(spec.threads).threads}
-    if spec.dtype != "float32":
-        if "precision" not in inspect.signature(opener).parameters:
-            raise ValueError(
-                f"the {spec.engine} engine runs float32 only; use --dtype float32 or --engine torch"
-            )
-        options["precision"] = spec.dtype
-    return options
+    return {
+        "threads": choose_threads(spec.threads).threads,
+        "precision": check_precision(spec.dtype),
+    }
 
 
 def load_graph_predictor(spec: ModelSpec) -> GraphPredictor:
@@ -108,14 +104,11 @@ def _open_tracker(
     spec: ModelSpec, folder: Path, threshold: float, request: ExportRequest
 ) -> OnnxTracker:
     """The export's tracker; an entry the engine cannot open is exported again, once."""
-    import importlib
-
     from taptr.export.cache import discard, export_entry, export_key, say
-    from taptr.onnx.graph_engines import engine_named
+    from taptr.onnx.precisions import PrecisionError
     from taptr.onnx.video_tracker import OnnxTracker
 
-    module, name = engine_named(spec.engine).opener.split(":")
-    options = engine_options(spec, getattr(importlib.import_module(module), name))
+    options = engine_options(spec)
 
     def opened(path: Path) -> OnnxTracker:
         return OnnxTracker(
@@ -129,6 +122,8 @@ def _open_tracker(
 
     try:
         return opened(folder)
+    except PrecisionError:  # the engine's or the CPU's refusal, not a damaged export
+        raise
     except ValueError as error:  # a graph damaged past the cache's own checks
         reason = " ".join(str(error).split())[:200]
         say(f"taptr: the exported graphs in {folder} are damaged ({reason}); exporting again")

@@ -25,7 +25,9 @@ class ModelSpec:
             (`taptr.weights.registry.DEFAULT_MODEL`, else the bundled one with a warning).
         device: ``cpu``, ``cuda``, ``cuda:N``, ``mps``; None: the best this machine has.
         dtype: the precision of the model's products: ``float32`` (no autocast),
-            ``bfloat16`` or ``float16`` (autocast, weights kept in float32).
+            ``bfloat16`` or ``float16`` (autocast, weights kept in float32); with a graph
+            engine, the engine's precision (`taptr.onnx.precisions`): ``float32``,
+            ``bfloat16`` (OpenVINO) or ``int8`` (the encoder quantised once).
         input_size: (H, W) the model sees; None: the model's.
         context_points: TAPTRv2's context points K; None: the model's.
         support: extra points around the queries (`taptr.config.SUPPORT_KINDS`);
@@ -40,7 +42,7 @@ class ModelSpec:
             (onnxruntime's intra-op threads, OpenVINO's inference threads).
         engine: what runs the tracker (`taptr.types.ENGINE_CHOICES`): ``torch``, or
             TAPTRv3's exported graphs in ``onnxruntime`` or ``openvino``, exported once per
-            checkpoint and kept (`taptr.api.export_cache`); the same tracks up to float
+            checkpoint and kept (`taptr.export.cache`); the same tracks up to float
             rounding. The graph engines run on the CPU in ``dtype`` as the engine's
             precision and ignore ``kernel``, ``frames_per_call``, ``capture`` and ``compile``.
     """

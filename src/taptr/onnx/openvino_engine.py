@@ -12,8 +12,11 @@ first call (one to one and a half steps more; docs/EXPORT.md), where a static st
 again, seconds, for every point count and every doubling of the history.
 
 Precision is asked, never left to the device: OpenVINO runs float32 graphs in bfloat16 on
-CPUs that have it (AVX512-BF16, AMX) unless told otherwise, so ``precision="f32"`` (the
-default) keeps the graphs' float32, and ``"bf16"`` asks for the faster, less exact one.
+CPUs that have it (AVX512-BF16, AMX) unless told otherwise, so ``precision="float32"``
+(the default) keeps the graphs' float32; ``"bfloat16"`` asks for the faster, less exact
+one and is refused on a CPU without it (OpenVINO would quietly run float32); ``"int8"``
+compiles the export's int8 graphs (`taptr.onnx.int8_graphs`), their other layers in
+float32. ``TAPTR_CPU`` (`taptr.cpu_levels`) takes bfloat16 away as it does for PyTorch.
 """
 
 from __future__ import annotations
@@ -23,28 +26,28 @@ from typing import Any
 
 import numpy as np
 
-from taptr.onnx.graph_engines import ENGINES, check_signature, engine_module, graph_files
+from taptr.cpu_levels import VARIABLE, allowed
+from taptr.onnx.graph_engines import ENGINES, check_signature, engine_module
+from taptr.onnx.precisions import PrecisionError, check_precision, precision_files
 from taptr.onnx.v3_manifest import V3Manifest
 
-PRECISIONS = ("f32", "bf16", "f16")
-"""Inference precisions OpenVINO may be asked for (its ``INFERENCE_PRECISION_HINT``)."""
+HINTS = {"float32": "f32", "bfloat16": "bf16", "int8": "f32"}
+"""Each precision's ``INFERENCE_PRECISION_HINT``: int8 graphs keep their other layers f32."""
 
 
 def compile_config(precision: str, threads: int | None, cache_dir: str | None) -> dict[str, str]:
     """OpenVINO's compile properties for one graph.
 
     Args:
-        precision: one of `PRECISIONS`.
+        precision: one of `taptr.onnx.precisions.PRECISIONS`.
         threads: inference threads (None: OpenVINO's choice, one per core).
         cache_dir: where OpenVINO keeps compiled graphs between processes (None: not kept).
 
     Raises:
         ValueError: an unknown precision.
     """
-    if precision not in PRECISIONS:
-        raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
     config = {
-        "INFERENCE_PRECISION_HINT": precision,
+        "INFERENCE_PRECISION_HINT": HINTS[check_precision(precision)],
         "PERFORMANCE_HINT": "LATENCY",  # one frame at a time: one stream, every thread on it
     }
     if threads is not None:
@@ -60,13 +63,16 @@ class OpenVinoGraphs:
     Args:
         directory: the export folder.
         device: OpenVINO's device (``CPU``, ``GPU``, ``AUTO``).
-        precision: the inference precision (`PRECISIONS`; ``f32``: the graphs' own).
+        precision: ``float32`` (the graphs' own), ``bfloat16`` (CPUs with AVX512-BF16 or
+            AMX) or ``int8`` (the export's int8 graphs, made in ``<directory>/int8/`` on
+            first use).
         threads: inference threads (default: one per core).
         cache_dir: where OpenVINO keeps compiled graphs between processes.
 
     Raises:
         ModuleNotFoundError: openvino is missing.
-        ValueError: an export folder that fails its checks (another model's, a graph that
+        ValueError: a precision this device cannot run (one line naming the missing CPU
+            feature), an export folder that fails its checks (another model's, a graph that
             is not a regular file or not the graph the manifest names), or a graph
             OpenVINO cannot compile (one line).
     """
@@ -78,17 +84,20 @@ class OpenVinoGraphs:
         directory: str | os.PathLike[str],
         *,
         device: str = "CPU",
-        precision: str = "f32",
+        precision: str = "float32",
         threads: int | None = None,
         cache_dir: str | None = None,
     ) -> None:
         openvino = engine_module(ENGINES["openvino"])
         config = compile_config(precision, threads, cache_dir)
-        self.manifest = V3Manifest.load(directory)
         core = openvino.Core()
+        if precision == "bfloat16":
+            check_bfloat16(core, device)
+        self.precision = precision
+        self.manifest = V3Manifest.load(directory)
         self.requests = {}
         one_frame = {"frames": [1, 3, *self.manifest.input_size]}
-        for name, path in graph_files(self.manifest, directory).items():
+        for name, path in precision_files(directory, self.manifest, precision).items():
             shapes = one_frame if name == "encoder" else None
             compiled = _compiled(openvino, core, path, (device, config), shapes)
             inputs = [port.get_any_name() for port in compiled.inputs]
@@ -125,6 +134,30 @@ class OpenVinoGraphs:
     def decode_step(self, inputs: dict[str, np.ndarray]) -> tuple[np.ndarray, ...]:
         """``decode_step``'s named inputs → new positions (N, 4), visibility (N, 3), features."""
         return tuple(self._run("decode_step", inputs))
+
+
+def check_bfloat16(core: Any, device: str) -> None:
+    """Refuses bfloat16 on a CPU without bfloat16 products (or with them taken away).
+
+    OpenVINO reports ``BF16`` among a CPU's optimisation capabilities where it has
+    AVX512-BF16 or AMX; other devices (a GPU) are left to OpenVINO.
+
+    Raises:
+        ValueError: the CPU lacks both, or ``TAPTR_CPU`` takes them away (one line).
+    """
+    if not device.upper().startswith("CPU"):
+        return
+    found = "BF16" in core.get_property("CPU", "OPTIMIZATION_CAPABILITIES")
+    if not found:
+        raise PrecisionError(
+            "precision='bfloat16' needs a CPU with AVX512-BF16 or AMX, and this CPU has "
+            "neither: use precision='float32' or 'int8'"
+        )
+    if not allowed("avx512_bf16"):
+        raise PrecisionError(
+            f"precision='bfloat16' needs AVX512-BF16 or AMX, which {VARIABLE}="
+            f"{os.environ.get(VARIABLE, '').strip()} takes away: use precision='float32' or 'int8'"
+        )
 
 
 def _compiled(

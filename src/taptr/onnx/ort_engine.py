@@ -12,6 +12,9 @@ graphs too (`taptr.export.graph_steps`). Execution providers come as named prese
   count and history size (`BoundStep`);
 - ``tensorrt``: the TensorRT provider, its engines kept in ``trt_cache`` (then CUDA's).
 
+Precision (`taptr.onnx.precisions`): ``float32`` and ``int8`` (the export's int8 graphs);
+``bfloat16`` is refused, the CPU provider has no bfloat16 kernels for these graphs.
+
 Every session takes every graph optimisation and flushes denormal floats to zero, as the
 PyTorch predictor does on a CPU (`taptr.runtime.denormals`): products of small weights
 and activations otherwise take a path tens of times slower on x86 CPUs.
@@ -25,7 +28,8 @@ from typing import Any
 
 import numpy as np
 
-from taptr.onnx.graph_engines import ENGINES, check_signature, engine_module, graph_files
+from taptr.onnx.graph_engines import ENGINES, check_signature, engine_module
+from taptr.onnx.precisions import PrecisionError, check_precision, precision_files
 from taptr.onnx.v3_manifest import V3Manifest
 
 PRESETS = ("cpu", "cuda", "cuda-graphs", "tensorrt")
@@ -153,10 +157,13 @@ class OnnxRuntimeGraphs:
         providers: onnxruntime's provider list instead of a preset, names or
             (name, options) pairs.
         trt_cache: ``tensorrt``: where TensorRT keeps the engines it builds.
+        precision: ``float32`` (the export's graphs) or ``int8`` (its int8 graphs, made
+            in ``<directory>/int8/`` on first use); ``bfloat16`` is refused.
 
     Raises:
         ModuleNotFoundError: onnxruntime is missing.
-        ValueError: a preset this onnxruntime cannot run, or an export folder that fails
+        ValueError: a preset this onnxruntime cannot run, a precision it cannot run
+            (``bfloat16``; the message names the engine that can), or an export folder that fails
             its checks (another model's, a graph that is not a regular file or not the
             graph the manifest names).
     """
@@ -171,13 +178,21 @@ class OnnxRuntimeGraphs:
         threads: int | None = None,
         providers: list[Any] | None = None,
         trt_cache: str | None = None,
+        precision: str = "float32",
     ) -> None:
         onnxruntime_module()  # its message before the manifest's
+        if check_precision(precision) == "bfloat16":
+            raise PrecisionError(
+                "the onnxruntime engine cannot run precision='bfloat16' (its CPU provider has "
+                "no bfloat16 kernels for these graphs): use engine='openvino' on a CPU with "
+                "AVX512-BF16 or AMX, or precision='int8'"
+            )
+        self.precision = precision
         chosen = preset_providers(preset, trt_cache) if providers is None else providers
         if providers is None:
             check_available(preset)
         self.manifest = V3Manifest.load(directory)
-        files = graph_files(self.manifest, directory)
+        files = precision_files(directory, self.manifest, precision)
         self.sessions = open_sessions(files, threads, chosen)
         for name, session in self.sessions.items():
             inputs = [spec.name for spec in session.get_inputs()]

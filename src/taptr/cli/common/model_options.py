@@ -19,7 +19,7 @@ from taptr.cli.common.options import (
     check_input_size,
 )
 from taptr.config import SUPPORT_KINDS, check_history_frames
-from taptr.types import AUTOCAST_TYPES, CAPTURE_CHOICES, ENGINE_CHOICES
+from taptr.types import CAPTURE_CHOICES, DTYPE_CHOICES, ENGINE_CHOICES
 
 if TYPE_CHECKING:
     from taptr.api.predictor import Predictor
@@ -92,12 +92,14 @@ def add_model_arguments(
     )
     parser.add_argument(
         "--dtype",
-        choices=AUTOCAST_TYPES,
+        choices=DTYPE_CHOICES,
         default="float32",
         help="run the model under autocast in this type, weights kept in float32 (float16 "
         "as the official demo runs, or bfloat16; on the CPU, bfloat16 runs the products in "
-        "bfloat16 where the CPU has it natively, AVX512-BF16 or AMX, else float32; accuracy "
-        "in docs/BENCHMARKS.md) (default: float32, no autocast)",
+        "bfloat16 where the CPU has it natively, AVX512-BF16 or AMX, else float32); with "
+        "--engine onnxruntime or openvino: the engine's precision, bfloat16 (OpenVINO) or "
+        "int8 (the encoder quantised once, calibrated on frames the package makes); accuracy "
+        "in docs/BENCHMARKS.md (default: float32, no autocast)",
     )
     parser.add_argument(
         "--kernel",
@@ -162,6 +164,25 @@ def check_model_arguments(args: argparse.Namespace) -> None:
     check_checkpoint_name(args.checkpoint)
     if getattr(args, "engine", "torch") != "torch":
         check_graph_device(args)
+    check_dtype_engine(args.dtype, getattr(args, "engine", "torch"))
+
+
+def check_dtype_engine(dtype: str, engine: str) -> None:
+    """Refuses a ``--dtype`` that ``--engine`` does not run, before any model loads.
+
+    Raises:
+        ValueError: int8 with PyTorch, or float16 with a graph engine (CPU only).
+    """
+    if dtype == "int8" and engine == "torch":
+        raise ValueError(
+            "--dtype int8 runs in the graph engines: add --engine onnxruntime or "
+            "--engine openvino (PyTorch runs float32, bfloat16 or float16)"
+        )
+    if dtype == "float16" and engine != "torch":
+        raise ValueError(
+            f"--engine {engine} runs float32, bfloat16 (openvino) or int8, not float16; "
+            "use --engine torch on a GPU for float16"
+        )
 
 
 def check_checkpoint_name(checkpoint: str | None, flag: str = "--checkpoint") -> None:

@@ -20,15 +20,13 @@ call `refresh`.
 from __future__ import annotations
 
 import functools
-import os
 
 import torch
 
-VARIABLE = "TAPTR_CPU"
-"""The setting that lowers what taptr takes the CPU to have."""
-
-LEVELS = ("default", "avx2", "avx512", "avx512_bf16", "amx")
-"""``TAPTR_CPU``'s values, from the least capable CPU to the most."""
+from taptr.cpu_levels import LEVELS as LEVELS
+from taptr.cpu_levels import VARIABLE as VARIABLE
+from taptr.cpu_levels import allowed as _allowed
+from taptr.cpu_levels import ceiling as ceiling
 
 X86_CAPABILITIES = ("AVX2", "AVX512")
 """``torch.backends.cpu.get_cpu_capability()`` values of the CPUs the oneDNN path serves
@@ -36,26 +34,6 @@ X86_CAPABILITIES = ("AVX2", "AVX512")
 
 _CAPABILITY_LEVEL = {"DEFAULT": "default", "AVX2": "avx2", "AVX512": "avx512"}
 """``torch.backends.cpu.get_cpu_capability()`` → level (other values: no x86 level)."""
-
-
-@functools.cache
-def ceiling() -> str:
-    """The level ``TAPTR_CPU`` names, or ``amx`` (nothing taken away) when it is unset.
-
-    Raises:
-        ValueError: ``TAPTR_CPU`` is set to something else than one of `LEVELS`.
-    """
-    value = os.environ.get(VARIABLE, "").strip().lower()
-    if not value:
-        return LEVELS[-1]
-    if value not in LEVELS:
-        raise ValueError(f"{VARIABLE}={value!r} is no CPU level; choose from {', '.join(LEVELS)}")
-    return value
-
-
-def _allowed(level: str) -> bool:
-    """Whether instructions of ``level`` are left in by ``TAPTR_CPU``."""
-    return LEVELS.index(level) <= LEVELS.index(ceiling())
 
 
 def cpu_capability() -> str:
