@@ -96,3 +96,9 @@ def test_the_code_keeps_no_benchmark_history():
         if history.search(line)
     ]
     assert not found, "benchmark history in the code:\n" + "\n".join(found)
+
+
+def test_the_package_top_level_keeps_at_most_ten_loose_modules():
+    """Loose modules are the ground's few shared rules; a component belongs in a room."""
+    loose = sorted(p.stem for p in PACKAGE.glob("*.py") if p.name != "__init__.py")
+    assert len(loose) <= 10, f"{len(loose)} loose modules at src/taptr's top level: {loose}"
