@@ -23,6 +23,7 @@ from taptr.corpus.inputs import CorpusVideo, QuerySpec
 from taptr.corpus.progress import Progress, Summary
 from taptr.corpus.records import DONE, FAILED, Failure, Finished, VideoTracks
 from taptr.corpus.video_list import MAX_HEADER_BYTES, read_video_list
+from taptr.messages import install_line
 
 pa = pytest.importorskip("pyarrow")
 pq = pytest.importorskip("pyarrow.parquet")
@@ -445,7 +446,7 @@ def test_without_ray_the_command_says_how_to_install_it(monkeypatch, tmp_path, c
     monkeypatch.setitem(sys.modules, "ray", None)
     status = main(["track-corpus", str(tmp_path), "--grid", "2", "--out", str(tmp_path / "o")])
     assert status == 2
-    assert 'pip install -e ".[ray]"' in capsys.readouterr().err
+    assert install_line("ray") in capsys.readouterr().err
 
 
 def test_a_part_cut_after_it_was_written_is_not_trusted(tmp_path, capsys):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import re
 
 import cv2
 import numpy as np
@@ -20,6 +21,7 @@ from taptr.data.photos import (
     photo_texture,
 )
 from taptr.data.synthetic import SyntheticConfig, make_video
+from taptr.messages import install_line
 from tests.photo_checks import colour_drift, colours_under, fabricated_photo
 
 CONFIG = SyntheticConfig(height=96, width=128, num_frames=10, num_points=300, objects=(2, 3))
@@ -95,7 +97,7 @@ def test_builtin_split_is_disjoint():
 
 def test_missing_package_says_what_to_install(monkeypatch):
     monkeypatch.setattr(photos_module.importlib.util, "find_spec", lambda name: None)
-    with pytest.raises(ModuleNotFoundError, match=r"taptr\[photos\]"):
+    with pytest.raises(ModuleNotFoundError, match=re.escape(install_line("photos"))):
         find_photo(BUILTIN_PHOTOS[0])
 
 
