@@ -24,28 +24,13 @@ from taptr.corpus.progress import Progress, Summary
 from taptr.corpus.records import DONE, FAILED, Failure, Finished, VideoTracks
 from taptr.corpus.video_list import MAX_HEADER_BYTES, read_video_list
 from taptr.messages import install_line
+from tests.corpus_helpers import video as tracked
 
 pa = pytest.importorskip("pyarrow")
 pq = pytest.importorskip("pyarrow.parquet")
 
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "CORPUS.md"
 RUN = "20261207T000000000000Z"
-
-
-def _video(name: str, frames: int = 4, points: int = 3, digest: str = "d" * 16) -> VideoTracks:
-    rng = np.random.default_rng(len(name) + frames)
-    return VideoTracks(
-        video_id=name,
-        path=f"/clips/{name}.mp4",
-        queries=np.zeros((points, 3), np.float32),
-        tracks=rng.random((frames, points, 2), np.float32),
-        visibility=rng.random((frames, points)) > 0.3,
-        size=(32, 48),
-        fps=10.0,
-        declared_frames=frames,
-        model="tiny",
-        digest=digest,
-    )
 
 
 def _failure(name: str, digest: str = "d" * 16) -> Failure:
@@ -74,7 +59,7 @@ def test_a_part_holds_many_videos_and_the_dataset_reads_as_one_table(tmp_path):
     layout = _layout(tmp_path)
     writer = _writer(layout, videos=3)
     for index, name in enumerate(["a", "b", "c", "d"]):
-        writer.add_tracks(index, _video(name, frames=4 + index))
+        writer.add_tracks(index, tracked(name, frames=4 + index))
         if writer.due():
             committed = writer.flush()
             assert committed.indices == (0, 1, 2)
@@ -86,7 +71,7 @@ def test_a_part_holds_many_videos_and_the_dataset_reads_as_one_table(tmp_path):
     assert list(frame.columns) == tracks_schema().names
     assert sorted(set(frame["video_id"])) == ["a", "b", "c", "d"] and len(frame) == 12
     d = frame[frame["video_id"] == "d"]
-    np.testing.assert_array_equal(np.stack(d["positions"].iloc[1]), _video("d", 7).tracks[:, 1])
+    np.testing.assert_array_equal(np.stack(d["positions"].iloc[1]), tracked("d", 7).tracks[:, 1])
     assert list(d["declared_frames"]) == [7] * 3 and list(d["decoded_frames"]) == [7] * 3
     (failure,) = pd.read_parquet(out / "failures").to_dict("records")
     assert (failure["declared_frames"], failure["decoded_frames"], failure["attempts"]) == (
@@ -108,7 +93,7 @@ def test_duckdb_and_pyarrow_read_the_parts_as_the_docs_query_them(tmp_path):
     layout = _layout(tmp_path)
     writer = _writer(layout)
     for index, (name, frames) in enumerate((("a", 4), ("b", 6))):
-        video = _video(name, frames)
+        video = tracked(name, frames)
         visible = np.ones((frames, 3), bool)
         visible[0, 1] = False
         writer.add_tracks(index, VideoTracks(**{**vars(video), "visibility": visible}))
@@ -130,7 +115,7 @@ def test_a_part_that_reads_back_short_is_not_committed(tmp_path, monkeypatch):
 
     layout = _layout(tmp_path)
     writer = _writer(layout)
-    writer.add_tracks(0, _video("a"))
+    writer.add_tracks(0, tracked("a"))
     real_write = Storage.write
 
     def lossy(self, relative, data):  # a store that drops the end of what it was given
@@ -154,13 +139,13 @@ def test_orphan_parts_are_removed_and_superseded_rows_compacted(tmp_path):
     layout = _layout(tmp_path)
     first = _writer(layout, "20261207T000000000000Z")
     for index, name in enumerate("abc"):
-        first.add_tracks(index, _video(name))
+        first.add_tracks(index, tracked(name))
     first.add_failure(3, _failure("f"))
     first.flush()
     second = _writer(layout, "20261208T000000000000Z")
-    second.add_tracks(0, _video("a", frames=9, digest="e" * 16))  # a, other settings
+    second.add_tracks(0, tracked("a", frames=9, digest="e" * 16))  # a, other settings
     second.add_failure(1, _failure("b"))  # b failed after its result: both stand
-    second.add_tracks(2, _video("f"))  # f done now: its old failure goes
+    second.add_tracks(2, tracked("f"))  # f done now: its old failure goes
     second.flush()
     # a part without an index: its actor died while writing it
     orphan = tmp_path / "out" / TRACKS / "part-20261208T000000000000Z-0badc0de-000000.parquet"
@@ -192,7 +177,7 @@ def test_a_rerun_skips_what_the_index_says_is_done(tmp_path):
 
     layout = _layout(tmp_path)
     writer = _writer(layout)
-    writer.add_tracks(0, _video("done"))
+    writer.add_tracks(0, tracked("done"))
     writer.add_failure(1, _failure("failed"))
     writer.flush()
     spec = QuerySpec(grid=2)
@@ -456,7 +441,7 @@ def test_a_part_cut_after_it_was_written_is_not_trusted(tmp_path, capsys):
     layout = _layout(tmp_path)
     for index, name in enumerate("ab"):
         writer = _writer(layout)
-        writer.add_tracks(index, _video(name))
+        writer.add_tracks(index, tracked(name))
         writer.flush()
     damaged = sorted((tmp_path / "out" / "tracks").iterdir())[0]
     damaged.write_bytes(damaged.read_bytes()[:20])  # cut to 20 bytes
